@@ -1,0 +1,36 @@
+"""jdrkf: JAX-accelerated, differentiable robust and distributionally robust state estimators."""
+
+import importlib.metadata
+
+from . import linalg as linalg, metrics as metrics
+from ._gaussian import Gaussian as Gaussian
+from ._models import LinearModel as LinearModel
+from ._montecarlo import Clairvoyant as Clairvoyant, montecarlo as montecarlo
+from ._noise import (
+    AbstractNoise as AbstractNoise,
+    GaussianNoise as GaussianNoise,
+    MixtureNoise as MixtureNoise,
+    OutlierNoise as OutlierNoise,
+    ScaledNoise as ScaledNoise,
+    StudentTNoise as StudentTNoise,
+    UniformPerturbation as UniformPerturbation,
+    UQuadraticNoise as UQuadraticNoise,
+)
+from ._simulate import Trajectories as Trajectories, simulate as simulate
+from .filters import (
+    AbstractFilter as AbstractFilter,
+    FilterResult as FilterResult,
+    KalmanFilter as KalmanFilter,
+    RESULTS as RESULTS,
+    SteadyStateGain as SteadyStateGain,
+    SteadyStateKalmanFilter as SteadyStateKalmanFilter,
+    StepOutput as StepOutput,
+    predict as predict,
+    update as update,
+)
+
+
+try:
+    __version__ = importlib.metadata.version("jdrkf")
+except importlib.metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = "0.0.0"

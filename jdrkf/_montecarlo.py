@@ -1,0 +1,130 @@
+"""Run several filters on the same simulated runs (common random numbers)."""
+
+from __future__ import annotations
+
+from typing import Callable, Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, PRNGKeyArray
+
+from . import metrics as _metrics
+from ._gaussian import Gaussian
+from ._models import LinearModel
+from ._simulate import Trajectories
+from .filters._base import AbstractFilter, FilterResult, RESULTS
+
+
+class Clairvoyant(eqx.Module):
+    """Wrap a filter so that Monte Carlo gives it what a real filter cannot know:
+
+    - `true_model=True`: the simulated model, with the per-run true transition
+      matrices when the simulation perturbed them;
+    - `clean=True`: the outlier-free observations.
+
+    Seed 000's TMKF is `Clairvoyant(KalmanFilter())`.
+    """
+
+    filter: AbstractFilter
+    true_model: bool = eqx.field(default=True, static=True)
+    clean: bool = eqx.field(default=True, static=True)
+
+
+Metric = Callable[[Trajectories, FilterResult], Array]
+
+DEFAULT_METRICS: dict[str, Metric] = {"rmse": lambda traj, res: _metrics.rmse(traj.states, res.filtered_means)}
+
+
+def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, metrics):
+    def one(traj: Trajectories, key):
+        out = {}
+        for name, flt in filters.items():
+            mdl, ys = model, traj.observations
+            if isinstance(flt, Clairvoyant):
+                if flt.true_model:
+                    mdl = true_model
+                    if traj.transition_matrices is not None:
+                        mdl = eqx.tree_at(lambda mm: mm.F, mdl, traj.transition_matrices)
+                if flt.clean:
+                    ys = traj.clean_observations
+                flt = flt.filter
+            res = flt(mdl, prior, ys, key)
+            out[name] = {mname: fn(traj, res) for mname, fn in metrics.items()}
+            out[name]["success"] = res.result == RESULTS.successful
+        return out
+
+    return jax.vmap(one)(chunk, keys)
+
+
+_run_chunk_jit = eqx.filter_jit(_run_chunk)
+
+
+def montecarlo(
+    filters: Mapping[str, AbstractFilter | Clairvoyant],
+    model: LinearModel,
+    prior: Gaussian,
+    trajectories: Trajectories,
+    *,
+    true_model: LinearModel | None = None,
+    metrics: Mapping[str, Metric] | None = None,
+    key: PRNGKeyArray | None = None,
+    chunk_size: int = 1000,
+    progress: bool = False,
+) -> dict[str, dict[str, np.ndarray]]:
+    """Run every filter on the same simulated runs and return per-run metrics.
+
+    **Arguments:**
+
+    - `filters`: name → filter (or `Clairvoyant(filter)`), all run on the same data.
+    - `model`: the nominal model the filters use; `true_model`: the simulated one
+      (for `Clairvoyant` entries; defaults to `model`).
+    - `prior`: the filters' law of `x_0`.
+    - `trajectories`: from `jdrkf.simulate`.
+    - `metrics`: name → `fn(trajectories, result) -> per-run value`, evaluated inside
+      the vmapped run (so `trajectories` and `result` are those of one run); default
+      `{"rmse": ...}`. A `"success"` entry (result code is successful) is always added.
+    - `key`: base key for stochastic filters; run `r` gets `fold_in(key, r)` for
+      every filter (common random numbers).
+    - `chunk_size`: runs per compiled call, bounding memory; the run axis of each
+      chunk is sharded across all local devices (`jax.sharding`), padded to a
+      multiple of the device count.
+    - `progress`: show a progress bar over chunks (needs `tqdm`).
+
+    **Returns:** `{filter_name: {metric_name: np.ndarray of shape (runs, ...)}}`.
+    Filters run with their own `throw` setting; use `throw=False` to keep going past
+    failed runs and inspect `"success"`.
+    """
+    if not filters:
+        raise ValueError("filters is empty")
+    for name, flt in filters.items():
+        if not isinstance(flt, (AbstractFilter, Clairvoyant)):
+            raise ValueError(f"filters[{name!r}] must be a jdrkf filter or Clairvoyant(filter), got {type(flt).__name__}")
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+    metrics = dict(DEFAULT_METRICS if metrics is None else metrics)
+    true_model = model if true_model is None else true_model
+    num_runs = trajectories.num_runs
+    run_keys = None if key is None else jax.vmap(lambda r: jax.random.fold_in(key, r))(jnp.arange(num_runs))
+
+    devices = jax.local_devices()
+    sharding = NamedSharding(Mesh(np.asarray(devices), ("runs",)), PartitionSpec("runs"))
+    chunk = min(chunk_size, num_runs)
+    chunk = -(-chunk // len(devices)) * len(devices)
+    starts = range(0, num_runs, chunk)
+    if progress:
+        from tqdm.auto import tqdm
+
+        starts = tqdm(starts, desc="Monte Carlo chunks", unit="chunk")
+
+    pieces = []
+    for start in starts:
+        stop = min(start + chunk, num_runs)
+        idx = np.minimum(np.arange(start, start + chunk), num_runs - 1)  # pad with the last run
+        data = jax.tree.map(lambda a: a[idx], (trajectories, run_keys))
+        data = jax.device_put(data, sharding)
+        out = _run_chunk_jit(dict(filters), model, true_model, prior, data[0], data[1], metrics)
+        pieces.append(jax.tree.map(lambda a: np.asarray(a)[: stop - start], out))
+    return jax.tree.map(lambda *a: np.concatenate(a, axis=0), *pieces)

@@ -1,0 +1,289 @@
+"""Sampling laws for process and measurement noise (and for `x_0`).
+
+Each law draws one vector per call, `sample(key, t)`, and can split it as
+`sample_parts(key, t) -> (nominal, outlier)` with `sample = nominal + outlier`:
+`nominal` is what the outlier-free law would have produced with the same random
+numbers. Seed 000's clairvoyant TMKF filters the outlier-free measurements
+`H x + nominal`.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
+
+from . import linalg
+from ._validation import as_float_array, check_covariance, check_shape, is_concrete
+
+
+class AbstractNoise(eqx.Module):
+    """A law to sample noise vectors of dimension `dim` from, at time index `t`."""
+
+    @property
+    @abc.abstractmethod
+    def dim(self) -> int:
+        """Dimension of one draw."""
+
+    @abc.abstractmethod
+    def sample_parts(self, key: PRNGKeyArray, t: Int[ArrayLike, ""] = 0) -> tuple[Float[Array, " d"], Float[Array, " d"]]:
+        """One draw split into `(nominal, outlier)` parts."""
+
+    def sample(self, key: PRNGKeyArray, t: Int[ArrayLike, ""] = 0) -> Float[Array, " d"]:
+        """One draw at time index `t`."""
+        nominal, outlier = self.sample_parts(key, t)
+        return nominal + outlier
+
+    @property
+    @abc.abstractmethod
+    def mean(self) -> Float[Array, " d"]:
+        """Mean of the law (at `t = 0` for time-varying laws)."""
+
+    @property
+    @abc.abstractmethod
+    def cov(self) -> Float[Array, "d d"]:
+        """Covariance of the law (at `t = 0` for time-varying laws)."""
+
+
+def _cov_and_mean(cov, mean):
+    cov = as_float_array("cov", cov, (2,))
+    check_covariance("cov", cov)
+    d = cov.shape[0]
+    mean = jnp.zeros(d, cov.dtype) if mean is None else as_float_array("mean", mean, (1,))
+    check_shape("mean", mean, (d,), f"to match cov ({d}x{d})")
+    dtype = jnp.result_type(cov, mean)
+    return cov.astype(dtype), mean.astype(dtype)
+
+
+def _check_probability(name, p, upper=1.0):
+    p = as_float_array(name, p, (0,))
+    if is_concrete(p) and not (0.0 <= float(p) <= upper):
+        raise ValueError(f"{name} must lie in [0, {upper}], got {float(p)}")
+    return p
+
+
+class GaussianNoise(AbstractNoise):
+    """`N(mean, cov)` noise (all of it nominal)."""
+
+    _cov: Float[Array, "d d"]
+    _mean: Float[Array, " d"]
+
+    def __init__(self, cov: Float[ArrayLike, "d d"], mean: Float[ArrayLike, " d"] | None = None):
+        self._cov, self._mean = _cov_and_mean(cov, mean)
+
+    @property
+    def dim(self):
+        return self._cov.shape[-1]
+
+    @property
+    def mean(self):
+        return self._mean
+
+    @property
+    def cov(self):
+        return self._cov
+
+    def sample_parts(self, key, t=0):
+        z = jax.random.normal(key, (self.dim,), self._cov.dtype)
+        return self._mean + linalg.psd_sqrt(self._cov) @ z, jnp.zeros(self.dim, self._cov.dtype)
+
+
+class MixtureNoise(AbstractNoise):
+    """Contaminated Gaussian `(1 − p) N(μ, R) + p N(μ, k R)` (`k = scale ≥ 1`).
+
+    Drawn as `N(μ, R)` (nominal) plus, with probability `p` for the whole vector, an
+    independent `N(0, (k − 1) R)` (outlier); the sum has exactly the mixture law.
+    """
+
+    _cov: Float[Array, "d d"]
+    _mean: Float[Array, " d"]
+    p: Float[Array, ""]
+    scale: Float[Array, ""]
+
+    def __init__(self, cov, p, scale, mean=None):
+        self._cov, self._mean = _cov_and_mean(cov, mean)
+        self.p = _check_probability("p", p).astype(self._cov.dtype)
+        scale = as_float_array("scale", scale, (0,))
+        if is_concrete(scale) and float(scale) < 1.0:
+            raise ValueError(f"scale must be >= 1 (the outlier component is N(0, scale * cov)), got {float(scale)}")
+        self.scale = scale.astype(self._cov.dtype)
+
+    @property
+    def dim(self):
+        return self._cov.shape[-1]
+
+    @property
+    def mean(self):
+        return self._mean
+
+    @property
+    def cov(self):
+        return (1.0 - self.p + self.p * self.scale) * self._cov
+
+    def sample_parts(self, key, t=0):
+        k1, k2, k3 = jax.random.split(key, 3)
+        root = linalg.psd_sqrt(self._cov)
+        nominal = self._mean + root @ jax.random.normal(k1, (self.dim,), self._cov.dtype)
+        extra = jnp.sqrt(self.scale - 1.0) * (root @ jax.random.normal(k2, (self.dim,), self._cov.dtype))
+        hit = jax.random.bernoulli(k3, self.p)
+        return nominal, jnp.where(hit, extra, 0.0)
+
+
+class OutlierNoise(AbstractNoise):
+    """`N(μ, R)` plus, independently in each channel with probability `p`, an outlier
+    `±magnitude` (sign equiprobable): seed 000's outlier model (`magnitude = 100`)."""
+
+    _cov: Float[Array, "d d"]
+    _mean: Float[Array, " d"]
+    p: Float[Array, ""]
+    magnitude: Float[Array, ""]
+
+    def __init__(self, cov, p, magnitude, mean=None):
+        self._cov, self._mean = _cov_and_mean(cov, mean)
+        self.p = _check_probability("p", p).astype(self._cov.dtype)
+        self.magnitude = as_float_array("magnitude", magnitude, (0,)).astype(self._cov.dtype)
+
+    @property
+    def dim(self):
+        return self._cov.shape[-1]
+
+    @property
+    def mean(self):
+        return self._mean
+
+    @property
+    def cov(self):
+        return self._cov + self.p * self.magnitude**2 * jnp.eye(self.dim, dtype=self._cov.dtype)
+
+    def sample_parts(self, key, t=0):
+        k1, k2, k3 = jax.random.split(key, 3)
+        nominal = self._mean + linalg.psd_sqrt(self._cov) @ jax.random.normal(k1, (self.dim,), self._cov.dtype)
+        hit = jax.random.bernoulli(k2, self.p, (self.dim,))
+        sign = jnp.where(jax.random.bernoulli(k3, 0.5, (self.dim,)), 1.0, -1.0)
+        return nominal, jnp.where(hit, sign * self.magnitude, 0.0).astype(self._cov.dtype)
+
+
+class StudentTNoise(AbstractNoise):
+    """Multivariate Student-t with `dof > 2` degrees of freedom, scaled so that its
+    covariance is `cov`: `μ + sqrt((ν − 2)/g) · cov^½ z`, `g ~ χ²_ν`, `z ~ N(0, I)`.
+    Heavy-tailed but outlier-free in the `sample_parts` sense (all of it nominal)."""
+
+    _cov: Float[Array, "d d"]
+    _mean: Float[Array, " d"]
+    dof: Float[Array, ""]
+
+    def __init__(self, cov, dof, mean=None):
+        self._cov, self._mean = _cov_and_mean(cov, mean)
+        dof = as_float_array("dof", dof, (0,))
+        if is_concrete(dof) and float(dof) <= 2.0:
+            raise ValueError(f"dof must be > 2 for the covariance to exist, got {float(dof)}")
+        self.dof = dof.astype(self._cov.dtype)
+
+    @property
+    def dim(self):
+        return self._cov.shape[-1]
+
+    @property
+    def mean(self):
+        return self._mean
+
+    @property
+    def cov(self):
+        return self._cov
+
+    def sample_parts(self, key, t=0):
+        k1, k2 = jax.random.split(key)
+        z = jax.random.normal(k1, (self.dim,), self._cov.dtype)
+        g = 2.0 * jax.random.gamma(k2, self.dof / 2.0, dtype=self._cov.dtype)
+        x = self._mean + jnp.sqrt((self.dof - 2.0) / g) * (linalg.psd_sqrt(self._cov) @ z)
+        return x, jnp.zeros_like(x)
+
+
+class UQuadraticNoise(AbstractNoise):
+    """Independent U-quadratic components on the box `[low, high]` (seed 004):
+    density `α (x − β)²`, `α = 12/(b − a)³`, `β = (a + b)/2`; variance `3 (b − a)²/20`.
+    Sampled by the inverse CDF `x = β + cbrt(3u/α − (β − a)³)`."""
+
+    low: Float[Array, " d"]
+    high: Float[Array, " d"]
+
+    def __init__(self, low, high):
+        low = as_float_array("low", low, (1,))
+        high = as_float_array("high", high, (1,))
+        if low.shape != high.shape:
+            raise ValueError(f"low has shape {tuple(low.shape)} but high has shape {tuple(high.shape)}")
+        if is_concrete(low) and is_concrete(high) and not bool(jnp.all(high > low)):
+            raise ValueError("high must exceed low in every component")
+        dtype = jnp.result_type(low, high)
+        self.low, self.high = low.astype(dtype), high.astype(dtype)
+
+    @property
+    def dim(self):
+        return self.low.shape[-1]
+
+    @property
+    def mean(self):
+        return 0.5 * (self.low + self.high)
+
+    @property
+    def cov(self):
+        return jnp.diag(0.15 * (self.high - self.low) ** 2)
+
+    def sample_parts(self, key, t=0):
+        a, b = self.low, self.high
+        alpha = 12.0 / (b - a) ** 3
+        beta = 0.5 * (a + b)
+        u = jax.random.uniform(key, (self.dim,), a.dtype)
+        x = beta + jnp.cbrt(3.0 * u / alpha - (beta - a) ** 3)
+        return x, jnp.zeros_like(x)
+
+
+class ScaledNoise(AbstractNoise):
+    """Time-varying scale of a base law: covariance `a(t) · cov` (`R_t = a(t) R`).
+
+    Draws `μ + sqrt(a(t)) (x − μ)` from a base draw `x`. `scale` is an array of
+    length `T` (indexed by `t`) or a function `t -> a(t)` (traceable).
+    """
+
+    base: AbstractNoise
+    scale: Float[Array, " T"] | Callable
+
+    @property
+    def dim(self):
+        return self.base.dim
+
+    @property
+    def mean(self):
+        return self.base.mean
+
+    def _a(self, t):
+        return self.scale(t) if callable(self.scale) else jnp.asarray(self.scale)[t]
+
+    @property
+    def cov(self):
+        return self._a(0) * self.base.cov
+
+    def sample_parts(self, key, t=0):
+        nominal, outlier = self.base.sample_parts(key, t)
+        root = jnp.sqrt(self._a(t))
+        return self.base.mean + root * (nominal - self.base.mean), root * outlier
+
+
+class UniformPerturbation(eqx.Module):
+    """Random additive perturbation of the transition matrix, `F_t = F + α Δ_t D`
+    with `Δ_t ~ U[−1, 1]` i.i.d. per step (seed 000: `D = [[0, 1], [0, 0]]`)."""
+
+    direction: Float[Array, "n n"]
+    alpha: Float[Array, ""]
+
+    def __init__(self, direction, alpha):
+        self.direction = as_float_array("direction", direction, (2,))
+        self.alpha = as_float_array("alpha", alpha, (0,)).astype(self.direction.dtype)
+
+    def __call__(self, key: PRNGKeyArray, t: Int[ArrayLike, ""]) -> Float[Array, "n n"]:
+        delta = jax.random.uniform(key, (), self.direction.dtype, -1.0, 1.0)
+        return self.alpha * delta * self.direction

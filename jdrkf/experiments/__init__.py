@@ -1,0 +1,11 @@
+"""Paper reproductions, one module per paper, registered by name for `jdrkf reproduce`."""
+
+from . import wang_ye as wang_ye
+from ._registry import (
+    EXPERIMENTS as EXPERIMENTS,
+    Experiment as Experiment,
+    Report as Report,
+    Row as Row,
+    get as get,
+    register as register,
+)

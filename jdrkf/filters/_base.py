@@ -1,0 +1,160 @@
+"""Filter interface: `init`/`step` pairs scanned by `__call__`."""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray, PyTree
+
+from .._gaussian import Gaussian
+from .._models import LinearModel
+from .._validation import as_float_array
+
+
+class RESULTS(eqx.Enumeration):
+    """Outcome codes of a filter run (`FilterResult.result`).
+
+    Compare with `result == jdrkf.RESULTS.successful`; under `vmap` this gives one
+    boolean per run. A run reports the first failure that occurred in it.
+    """
+
+    successful = ""
+    nonpositive_innovation = (
+        "The innovation covariance H P Hᵀ + R was not numerically positive definite, so the "
+        "Kalman update could not be computed. Check that R is positive definite, that the "
+        "state covariance stays PSD (run in float64), and that the model is not diverging."
+    )
+    nonfinite_state = (
+        "The filtered mean or covariance became non-finite (inf/NaN). Common causes: NaN or inf "
+        "in the inputs, an unstable model over a long horizon in float32, or an upstream bug."
+    )
+
+
+class StepOutput(eqx.Module):
+    """What one `step` reports: the predicted and filtered laws of `x_k`, the
+    log-likelihood increment `log p(y_k | y_{1:k-1})`, diagnostics and a result code."""
+
+    predicted: Gaussian
+    filtered: Gaussian
+    loglik: Float[Array, ""]
+    info: PyTree
+    result: RESULTS
+
+
+class FilterResult(eqx.Module):
+    """Output of a filter run over `T` steps (index `t` holds step `k = t + 1`).
+
+    **Fields:**
+
+    - `filtered_means`, `filtered_covariances`: `(T, n)`, `(T, n, n)`, the law of `x_k | y_{1:k}`.
+    - `predicted_means`, `predicted_covariances`: the law of `x_k | y_{1:k-1}`.
+    - `marginal_loglik`: `log p(y_{1:T})` where the filter defines it (NaN otherwise).
+    - `loglik_increments`: `(T,)`, its per-step terms.
+    - `info`: filter-specific diagnostics, stacked over time.
+    - `result`: a `RESULTS` code, the first failure of the run.
+    """
+
+    filtered_means: Float[Array, "T n"]
+    filtered_covariances: Float[Array, "T n n"]
+    predicted_means: Float[Array, "T n"]
+    predicted_covariances: Float[Array, "T n n"]
+    marginal_loglik: Float[Array, ""]
+    loglik_increments: Float[Array, " T"]
+    info: PyTree
+    result: RESULTS
+
+
+def check_observations(model: LinearModel, prior: Gaussian, ys: Any, inputs: Any) -> tuple[Array, Array | None]:
+    """Eager checks of a filter call; returns `ys` and `inputs` as arrays."""
+    if not isinstance(model, LinearModel):
+        raise ValueError(f"model must be a jdrkf.LinearModel, got {type(model).__name__}")
+    if not isinstance(prior, Gaussian):
+        raise ValueError(f"prior must be a jdrkf.Gaussian, got {type(prior).__name__}")
+    n, m = model.state_dim, model.obs_dim
+    if prior.mean.shape != (n,):
+        raise ValueError(f"prior has dimension {prior.mean.shape[-1]} but the state dimension is {n}")
+    ys = as_float_array("ys", ys, (2,))
+    if ys.shape[1] != m:
+        raise ValueError(f"ys has shape {tuple(ys.shape)} but expected (T, {m}) (H has {m} rows)")
+    model.check_horizon(ys.shape[0])
+    if inputs is not None:
+        inputs = as_float_array("inputs", inputs, (2,))
+    model.check_inputs(inputs, ys.shape[0])
+    return ys, inputs
+
+
+class AbstractFilter(eqx.Module):
+    """Base class of all filters.
+
+    Subclasses are `eqx.Module`s whose array fields are hyper-parameters (so
+    `eqx.filter_grad` differentiates through them) and implement `init` and `step`.
+    `__call__` scans `step` over the observations with `lax.scan`.
+
+    `throw` (static): if `True`, a failed run raises through `eqx.error_if` (under
+    `vmap`: if any run fails). Set `throw=False` for Monte Carlo sweeps and inspect
+    `FilterResult.result` instead.
+    """
+
+    throw: eqx.AbstractVar[bool]
+
+    @abc.abstractmethod
+    def init(self, model: LinearModel, prior: Gaussian) -> PyTree:
+        """Filter state before the first step (from the law of `x_0`)."""
+
+    @abc.abstractmethod
+    def step(
+        self,
+        model: LinearModel,
+        state: PyTree,
+        y: Float[Array, " m"],
+        t: Int[ArrayLike, ""],
+        u: Float[Array, " p"] | None = None,
+        key: PRNGKeyArray | None = None,
+    ) -> tuple[PyTree, StepOutput]:
+        """Advance from `x_{k-1}` to `x_k` with `y = y_k` (array index `t = k − 1`)."""
+
+    def __call__(
+        self,
+        model: LinearModel,
+        prior: Gaussian,
+        ys: Float[ArrayLike, "T m"],
+        key: PRNGKeyArray | None = None,
+        *,
+        inputs: Float[ArrayLike, "T p"] | None = None,
+    ) -> FilterResult:
+        """Filter `ys` (`ys[t] = y_{t+1}`; NaN entries are missing) from the prior of `x_0`.
+
+        `key` is positional so that `jax.vmap(filter, in_axes=(None, None, 0, 0))`
+        maps over runs and keys; deterministic filters ignore it.
+        """
+        ys, inputs = check_observations(model, prior, ys, inputs)
+        num_steps = ys.shape[0]
+        keys = None if key is None else jax.random.split(key, num_steps)
+
+        def body(carry, xs):
+            state, result = carry
+            t, y, u, k = xs
+            state, out = self.step(model, state, y, t, u, k)
+            result = RESULTS.where(result == RESULTS.successful, out.result, result)
+            return (state, result), out
+
+        xs = (jnp.arange(num_steps), ys, inputs, keys)
+        (_, result), outs = lax.scan(body, (self.init(model, prior), RESULTS.successful), xs)
+        res = FilterResult(
+            filtered_means=outs.filtered.mean,
+            filtered_covariances=outs.filtered.cov,
+            predicted_means=outs.predicted.mean,
+            predicted_covariances=outs.predicted.cov,
+            marginal_loglik=jnp.sum(outs.loglik),
+            loglik_increments=outs.loglik,
+            info=outs.info,
+            result=result,
+        )
+        if self.throw:
+            res = result.error_if(res, result != RESULTS.successful)
+        return res

@@ -1,0 +1,160 @@
+"""Kalman filter (time-varying and steady-state)."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
+
+from .. import linalg
+from .._gaussian import Gaussian
+from .._models import LinearModel
+from ._base import RESULTS, AbstractFilter, StepOutput
+
+
+def predict(model: LinearModel, belief: Gaussian, t: Int[ArrayLike, ""], u: Float[Array, " p"] | None = None) -> Gaussian:
+    """Time update `x_{k-1} → x_k` with the step-`t` model (`t = k − 1`):
+    `m⁻ = F m + B u + G μ_w`, `P⁻ = F P Fᵀ + G Q Gᵀ`."""
+    mdl = model.at(t)
+    mean = mdl.F @ belief.mean + mdl.G @ mdl.process_mean
+    if mdl.B is not None:
+        mean = mean + mdl.B @ u
+    cov = linalg.symmetrize(mdl.F @ belief.cov @ mdl.F.T + mdl.G @ mdl.Q @ mdl.G.T)
+    return Gaussian(mean, cov)
+
+
+def _masked_measurement(mdl: LinearModel, y: Float[Array, " m"]):
+    """Rows of missing (NaN) components are decoupled: `H` row and residual set to
+    zero and the `R` row/column replaced by the identity's. The update then equals
+    the update with only the observed rows, with static shapes."""
+    observed = ~jnp.isnan(y)
+    obs_f = observed.astype(y.dtype)
+    h = mdl.H * obs_f[:, None]
+    r = mdl.R * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
+    resid = jnp.where(observed, y - mdl.noise_mean, 0.0)
+    return observed, h, r, resid
+
+
+def _gaussian_loglik(chol_s, innov, num_observed):
+    z = linalg.cho_solve(chol_s, innov)
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_s)))
+    return -0.5 * (innov @ z + logdet + num_observed * math.log(2 * math.pi))
+
+
+def update(
+    model: LinearModel, predicted: Gaussian, y: Float[Array, " m"], t: Int[ArrayLike, ""]
+) -> tuple[Gaussian, Float[Array, ""], Bool[Array, ""]]:
+    """Measurement update of `x_k` with `y_k` (NaN entries missing), Joseph form.
+
+    Returns the filtered Gaussian, the log-likelihood increment
+    `log N(y_k; H m⁻ + μ_v, H P⁻ Hᵀ + R)` over the observed components, and a flag
+    that is `True` when the innovation covariance was not positive definite.
+    """
+    mdl = model.at(t)
+    observed, h, r, resid = _masked_measurement(mdl, y)
+    innov = resid - h @ predicted.mean
+    s = linalg.symmetrize(h @ predicted.cov @ h.T + r)
+    chol_s = jnp.linalg.cholesky(s)
+    failed = ~jnp.all(jnp.isfinite(chol_s))
+    gain = linalg.cho_solve(chol_s, h @ predicted.cov).T
+    mean = predicted.mean + gain @ innov
+    a = jnp.eye(mdl.state_dim, dtype=s.dtype) - gain @ h
+    cov = linalg.symmetrize(a @ predicted.cov @ a.T + gain @ r @ gain.T)
+    loglik = _gaussian_loglik(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
+    return Gaussian(mean, cov), loglik, failed
+
+
+def _step_result(failed, belief: Gaussian) -> RESULTS:
+    finite = jnp.all(jnp.isfinite(belief.mean)) & jnp.all(jnp.isfinite(belief.cov))
+    return RESULTS.where(
+        failed, RESULTS.nonpositive_innovation, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_state)
+    )
+
+
+class KalmanFilter(AbstractFilter):
+    """The Kalman filter for `jdrkf.LinearModel` (time-varying, controls, noise means).
+
+    Each step predicts (`predict`) then updates (`update`, Joseph form, NaN entries of
+    `y` missing). It is the `θ = 0` special case of every DR filter in jdrkf and
+    the baseline `KF` / `TMKF` of Wang & Ye (2022).
+
+    **Example:**
+
+    ```python
+    result = jdrkf.KalmanFilter()(model, prior, ys)   # ys: (T, m)
+    batch = jax.vmap(jdrkf.KalmanFilter(), in_axes=(None, None, 0))(model, prior, ys_runs)
+    ```
+    """
+
+    throw: bool = eqx.field(default=True, static=True)
+
+    def init(self, model: LinearModel, prior: Gaussian) -> Gaussian:
+        return prior
+
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+        pred = predict(model, state, t, u)
+        filt, loglik, failed = update(model, pred, y, t)
+        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
+        return filt, out
+
+
+class SteadyStateGain(eqx.Module):
+    """Steady-state quantities of a time-invariant model: predicted covariance `P`
+    (solution of the filtering DARE), innovation covariance `S = H P Hᵀ + R`, gain
+    `K = P Hᵀ S⁻¹` and filtered covariance `(I − K H) P (I − K H)ᵀ + K R Kᵀ`."""
+
+    predicted_cov: Float[Array, "n n"]
+    innovation_cov: Float[Array, "m m"]
+    gain: Float[Array, "n m"]
+    filtered_cov: Float[Array, "n n"]
+
+
+class SteadyStateKalmanFilter(AbstractFilter):
+    """Kalman filter with the constant (limiting) gain of a time-invariant model.
+
+    `solve(model)` computes the steady state once (DARE by doubling, in JAX,
+    differentiable by implicit differentiation — see `jdrkf.linalg.solve_dare`); each
+    step then costs two matrix–vector products. The prior's mean starts the
+    recursion; its covariance is not used (reported covariances are the steady ones
+    from the first step on). Missing components of `y` (NaN) contribute no
+    correction (their gain columns are dropped); the gain is not recomputed.
+    """
+
+    throw: bool = eqx.field(default=True, static=True)
+
+    @staticmethod
+    def solve(model: LinearModel) -> SteadyStateGain:
+        """Steady-state covariances and gain of a time-invariant `model`."""
+        if model.num_steps is not None:
+            raise ValueError("SteadyStateKalmanFilter needs a time-invariant model (no leading time axis)")
+        p = linalg.solve_dare(model.F, model.H, model.G @ model.Q @ model.G.T, model.R)
+        s = linalg.symmetrize(model.H @ p @ model.H.T + model.R)
+        gain = linalg.psd_solve(s, model.H @ p).T
+        a = jnp.eye(model.state_dim, dtype=p.dtype) - gain @ model.H
+        filt = linalg.symmetrize(a @ p @ a.T + gain @ model.R @ gain.T)
+        return SteadyStateGain(predicted_cov=p, innovation_cov=s, gain=gain, filtered_cov=filt)
+
+    def init(self, model: LinearModel, prior: Gaussian):
+        ss = self.solve(model)
+        return prior.mean, ss, jnp.linalg.cholesky(ss.innovation_cov)
+
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+        mean, ss, chol_s = state
+        mean_pred = model.F @ mean + model.G @ model.process_mean
+        if model.B is not None:
+            mean_pred = mean_pred + model.B @ u
+        observed = ~jnp.isnan(y)
+        innov = jnp.where(observed, y - model.noise_mean - model.H @ mean_pred, 0.0)
+        mean_filt = mean_pred + ss.gain @ innov
+        # Log-likelihood over the observed components: marginal of N(0, S) on them.
+        _, h, r, _ = _masked_measurement(model, y)
+        s_obs = linalg.symmetrize(h @ ss.predicted_cov @ h.T + r)
+        chol_obs = jnp.linalg.cholesky(s_obs)
+        loglik = _gaussian_loglik(chol_obs, innov, jnp.sum(observed.astype(innov.dtype)))
+        pred = Gaussian(mean_pred, ss.predicted_cov)
+        filt = Gaussian(mean_filt, ss.filtered_cov)
+        failed = ~jnp.all(jnp.isfinite(chol_s))
+        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
+        return (mean_filt, ss, chol_s), out

@@ -1,0 +1,193 @@
+"""Dense linear algebra for covariance matrices, with gradients that stay finite.
+
+Every function works on float32 and float64 inputs and is safe under `jax.jit`,
+`jax.vmap` and `jax.grad`. Rules followed here (see `algorithms.md` §0):
+
+- covariances are symmetrized after every update;
+- systems are solved with Cholesky factors, never with explicit inverses;
+- `eigh` is used in forward passes only: derivatives of matrix functions come from
+  closed-form rules that divide by *sums* of eigenvalues, never by their gaps, so
+  repeated eigenvalues are harmless.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, ArrayLike, Float
+
+
+__all__ = [
+    "symmetrize",
+    "cho_solve",
+    "psd_solve",
+    "psd_sqrt",
+    "bures_distance",
+    "bures_distance_squared",
+    "solve_dare",
+]
+
+
+def symmetrize(a: Float[ArrayLike, "... n n"]) -> Float[Array, "... n n"]:
+    """Return `(a + aᵀ) / 2` (batched over leading axes)."""
+    a = jnp.asarray(a)
+    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
+
+
+def cho_solve(chol: Float[Array, "n n"], b: Float[ArrayLike, "n ..."]) -> Float[Array, "n ..."]:
+    """Solve `(L Lᵀ) x = b` given the lower Cholesky factor `L`."""
+    b = jnp.asarray(b)
+    vec = b.ndim == 1
+    b2 = b[:, None] if vec else b
+    z = jax.scipy.linalg.solve_triangular(chol, b2, lower=True)
+    x = jax.scipy.linalg.solve_triangular(chol, z, lower=True, trans="T")
+    return x[:, 0] if vec else x
+
+
+def psd_solve(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n ..."]) -> Float[Array, "n ..."]:
+    """Solve `a x = b` for symmetric positive-definite `a` via its Cholesky factor.
+
+    Returns NaNs when `a` is not numerically positive definite (JAX's Cholesky
+    convention); callers turn that into a result code.
+    """
+    return cho_solve(jnp.linalg.cholesky(symmetrize(a)), b)
+
+
+@jax.custom_jvp
+def psd_sqrt(a: Float[ArrayLike, "n n"]) -> Float[Array, "n n"]:
+    """Principal square root of a symmetric PSD matrix.
+
+    Forward: `eigh`, with negative round-off eigenvalues clipped to zero.
+    Derivative: the solution `dX` of the Sylvester equation `X dX + dX X = dA`,
+    i.e. `dX̃ᵢⱼ = dÃᵢⱼ / (√λᵢ + √λⱼ)` in the eigenbasis — finite for repeated
+    eigenvalues (only exactly singular directions are floored).
+    """
+    lam, vec = jnp.linalg.eigh(symmetrize(a))
+    root = jnp.sqrt(jnp.clip(lam, 0.0))
+    return symmetrize((vec * root) @ vec.T)
+
+
+@psd_sqrt.defjvp
+def _psd_sqrt_jvp(primals, tangents):
+    (a,), (da,) = primals, tangents
+    lam, vec = jnp.linalg.eigh(symmetrize(a))
+    root = jnp.sqrt(jnp.clip(lam, 0.0))
+    x = symmetrize((vec * root) @ vec.T)
+    tiny = jnp.finfo(x.dtype).tiny ** 0.5
+    denom = jnp.maximum(root[:, None] + root[None, :], tiny)
+    dx = vec @ ((vec.T @ symmetrize(da) @ vec) / denom) @ vec.T
+    return x, symmetrize(dx)
+
+
+@jax.custom_jvp
+def _nuclear_norm(m: Float[Array, "n n"]) -> Float[Array, ""]:
+    return jnp.sum(jnp.linalg.svd(m, compute_uv=False))
+
+
+@_nuclear_norm.defjvp
+def _nuclear_norm_jvp(primals, tangents):
+    # d‖M‖_* = ⟨U Vᵀ, dM⟩: the polar factor, well defined for nonsingular M even
+    # when singular values repeat (unlike the SVD's own JVP).
+    (m,), (dm,) = primals, tangents
+    u, s, vt = jnp.linalg.svd(m, full_matrices=False)
+    return jnp.sum(s), jnp.sum((u @ vt) * dm)
+
+
+def bures_distance_squared(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n n"]) -> Float[Array, ""]:
+    """Squared Bures (Gelbrich) distance `Tr(A + B − 2 (A^½ B A^½)^½)`.
+
+    The fidelity term is computed without matrix square roots as the nuclear norm
+    `‖L_Aᵀ L_B‖_*` of Cholesky factors (algorithms.md §0(c)); `a` and `b` must be
+    positive definite. Clipped at zero against round-off.
+    """
+    a, b = symmetrize(a), symmetrize(b)
+    fid = _nuclear_norm(jnp.linalg.cholesky(a).T @ jnp.linalg.cholesky(b))
+    return jnp.maximum(jnp.trace(a) + jnp.trace(b) - 2.0 * fid, 0.0)
+
+
+def bures_distance(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n n"]) -> Float[Array, ""]:
+    """Bures distance, the 2-Wasserstein distance between `N(0, a)` and `N(0, b)`.
+
+    The gradient at `a == b` (where the square root is not differentiable) is set to 0.
+    """
+    d2 = bures_distance_squared(a, b)
+    pos = d2 > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
+
+
+def _dare_residual(p, f, h, gqg, r):
+    s = h @ p @ h.T + r
+    fph = f @ p @ h.T
+    return symmetrize(f @ p @ f.T - fph @ jnp.linalg.solve(s, fph.T) + gqg) - p
+
+
+def _dare_doubling(f, h, gqg, r, max_iter, rtol):
+    # Structure-preserving doubling for the filtering DARE (dual of the control DARE
+    # with A = Fᵀ, B = Hᵀ). Converges quadratically: error ~ ρ^(2^k) for the
+    # closed-loop spectral radius ρ.
+    n = f.shape[0]
+    eye = jnp.eye(n, dtype=f.dtype)
+    a0 = f.T
+    g0 = symmetrize(h.T @ jnp.linalg.solve(r, h))
+    h0 = symmetrize(gqg)
+
+    def body(carry):
+        a, g, hh, _, k = carry
+        w = eye + g @ hh
+        w_inv_a = jnp.linalg.solve(w, a)
+        a_new = a @ w_inv_a
+        g_new = symmetrize(g + a @ jnp.linalg.solve(w, g) @ a.T)
+        h_new = symmetrize(hh + a.T @ hh @ w_inv_a)
+        delta = jnp.max(jnp.abs(h_new - hh)) / jnp.maximum(jnp.max(jnp.abs(h_new)), 1.0)
+        return a_new, g_new, h_new, delta, k + 1
+
+    def cond(carry):
+        *_, delta, k = carry
+        return (delta > rtol) & (k < max_iter)
+
+    init = (a0, g0, h0, jnp.asarray(jnp.inf, f.dtype), jnp.asarray(0))
+    _, _, p, _, _ = lax.while_loop(cond, body, init)
+    return p
+
+
+def solve_dare(
+    F: Float[ArrayLike, "n n"],
+    H: Float[ArrayLike, "m n"],
+    Q: Float[ArrayLike, "n n"],
+    R: Float[ArrayLike, "m m"],
+    *,
+    max_iter: int = 64,
+) -> Float[Array, "n n"]:
+    """Steady-state *predicted* covariance of the Kalman filter.
+
+    Solves the filtering discrete algebraic Riccati equation
+    `P = F P Fᵀ − F P Hᵀ (H P Hᵀ + R)⁻¹ H P Fᵀ + Q` (here `Q` is the process
+    covariance in state coordinates, i.e. `G Q Gᵀ`) by the structure-preserving
+    doubling algorithm, entirely in JAX. Requires (F, H) detectable and (F, Q^½)
+    stabilizable. Derivatives come from the implicit function theorem on the
+    Riccati residual (`lax.custom_root`), not from the doubling iterations.
+    """
+    F, H, Q, R = (jnp.asarray(x) for x in (F, H, Q, R))
+    dtype = jnp.result_type(F, H, Q, R)
+    F, H, Q, R = (x.astype(dtype) for x in (F, H, Q, R))
+    rtol = 10 * jnp.finfo(dtype).eps
+    n = F.shape[0]
+
+    def residual(p):
+        return _dare_residual(p, F, H, Q, R)
+
+    def solve(_, guess):
+        del guess
+        return _dare_doubling(lax.stop_gradient(F), lax.stop_gradient(H), lax.stop_gradient(Q),
+                              lax.stop_gradient(R), max_iter, rtol)
+
+    def tangent_solve(g, y):
+        # Dense solve of the linearized Riccati equation (n² unknowns).
+        jac = jax.jacfwd(g)(jnp.zeros_like(y))
+        x = jnp.linalg.solve(jac.reshape(n * n, n * n), y.reshape(n * n))
+        return x.reshape(n, n)
+
+    return lax.custom_root(residual, jnp.zeros((n, n), dtype), solve, tangent_solve)

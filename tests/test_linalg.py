@@ -1,0 +1,104 @@
+"""jdrkf.linalg and jdrkf.Gaussian against SciPy and finite differences."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.stats
+
+import jdrkf
+from jdrkf import linalg
+
+
+def _spd(rng, d):
+    a = rng.normal(size=(d, d))
+    return a @ a.T / d + 0.3 * np.eye(d)
+
+
+def _bures2_ref(a, b):
+    ra = scipy.linalg.sqrtm(a).real
+    return np.trace(a) + np.trace(b) - 2 * np.trace(scipy.linalg.sqrtm(ra @ b @ ra).real)
+
+
+def test_psd_sqrt_matches_scipy(rng):
+    a = _spd(rng, 4)
+    np.testing.assert_allclose(linalg.psd_sqrt(a), scipy.linalg.sqrtm(a).real, atol=1e-12)
+
+
+@pytest.mark.parametrize("repeated", [False, True])
+def test_psd_sqrt_gradient_finite_even_for_repeated_eigenvalues(rng, repeated):
+    a = np.eye(3) * 2.0 if repeated else _spd(rng, 3)
+    w = rng.normal(size=(3, 3))
+    grad = jax.grad(lambda x: jnp.sum(w * linalg.psd_sqrt(x)))(jnp.asarray(a))
+    assert np.all(np.isfinite(grad))
+    eps = 1e-6
+    for i, j in [(0, 0), (0, 1), (2, 1)]:
+        e = np.zeros((3, 3))
+        e[i, j] = e[j, i] = eps
+        fd = (np.sum(w * scipy.linalg.sqrtm(a + e).real) - np.sum(w * scipy.linalg.sqrtm(a - e).real)) / (2 * eps)
+        ad = grad[i, j] + (grad[j, i] if i != j else 0.0)
+        np.testing.assert_allclose(ad, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_cho_and_psd_solve(rng):
+    a, b = _spd(rng, 4), rng.normal(size=(4, 2))
+    np.testing.assert_allclose(linalg.psd_solve(a, b), np.linalg.solve(a, b), atol=1e-12)
+    np.testing.assert_allclose(linalg.psd_solve(a, b[:, 0]), np.linalg.solve(a, b[:, 0]), atol=1e-12)
+    np.testing.assert_allclose(linalg.symmetrize(np.triu(a)), (np.triu(a) + np.triu(a).T) / 2)
+
+
+def test_bures_distance_matches_sqrtm_formula(rng):
+    for d in [1, 2, 5]:
+        a, b = _spd(rng, d), _spd(rng, d)
+        np.testing.assert_allclose(linalg.bures_distance_squared(a, b), _bures2_ref(a, b), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(linalg.bures_distance(a, b) ** 2, _bures2_ref(a, b), rtol=1e-10, atol=1e-12)
+    a = _spd(rng, 3)
+    assert float(linalg.bures_distance(a, a)) == 0.0
+    # Scalar case: (sqrt(a) - sqrt(b))^2.
+    np.testing.assert_allclose(linalg.bures_distance_squared([[4.0]], [[9.0]]), 1.0, rtol=1e-12)
+
+
+def test_bures_gradient_matches_finite_differences(rng):
+    a, b = _spd(rng, 3), np.eye(3)  # b = I: repeated singular values in the fidelity term
+    grad = jax.grad(linalg.bures_distance_squared)(jnp.asarray(a), jnp.asarray(b))
+    eps = 1e-6
+    for i, j in [(0, 0), (1, 2)]:
+        e = np.zeros((3, 3))
+        e[i, j] = e[j, i] = eps
+        fd = (_bures2_ref(a + e, b) - _bures2_ref(a - e, b)) / (2 * eps)
+        np.testing.assert_allclose(grad[i, j] + (grad[j, i] if i != j else 0.0), fd, rtol=1e-6)
+    # The distance itself has a (zero) finite gradient at a == b.
+    g0 = jax.grad(linalg.bures_distance)(jnp.asarray(a), jnp.asarray(a))
+    assert np.all(np.isfinite(g0))
+
+
+def test_gaussian_log_prob_kl_gelbrich(rng):
+    m1, m2, s1, s2 = rng.normal(size=3), rng.normal(size=3), _spd(rng, 3), _spd(rng, 3)
+    g1, g2 = jdrkf.Gaussian(m1, s1), jdrkf.Gaussian(m2, s2)
+    x = rng.normal(size=(4, 3))
+    np.testing.assert_allclose(g1.log_prob(x), scipy.stats.multivariate_normal(m1, s1).logpdf(x), rtol=1e-12)
+    kl_ref = 0.5 * (
+        np.trace(np.linalg.solve(s2, s1)) + (m2 - m1) @ np.linalg.solve(s2, m2 - m1) - 3
+        + np.log(np.linalg.det(s2) / np.linalg.det(s1))
+    )
+    np.testing.assert_allclose(g1.kl_divergence(g2), kl_ref, rtol=1e-10)
+    np.testing.assert_allclose(
+        g1.gelbrich_distance(g2) ** 2, np.sum((m1 - m2) ** 2) + _bures2_ref(s1, s2), rtol=1e-10
+    )
+
+
+def test_gaussian_sample_moments(getkey):
+    mean, cov = np.array([1.0, -2.0]), np.array([[2.0, 0.5], [0.5, 1.0]])
+    x = np.asarray(jdrkf.Gaussian(mean, cov).sample(getkey(), (200_000,)))
+    np.testing.assert_allclose(x.mean(0), mean, atol=0.02)
+    np.testing.assert_allclose(np.cov(x.T), cov, atol=0.03)
+
+
+def test_gaussian_validation():
+    with pytest.raises(ValueError, match=r"cov has shape \(3, 3\) but mean has shape \(2,\)"):
+        jdrkf.Gaussian(np.zeros(2), np.eye(3))
+    with pytest.raises(ValueError, match="symmetric"):
+        jdrkf.Gaussian(np.zeros(2), np.array([[1.0, 0.5], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="mean must have 1 dimensions"):
+        jdrkf.Gaussian(np.zeros((2, 1)), np.eye(2))
