@@ -7,14 +7,13 @@ arrays, so they are skipped silently under `jit`/`vmap` tracing.
 
 from __future__ import annotations
 
-import numpy as np
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 
 def as_float_array(name: str, x, ndim: tuple[int, ...]):
     """Convert `x` to a JAX float array and check that its rank is one of `ndim`."""
-    import jax.numpy as jnp
-
     try:
         arr = jnp.asarray(x)
     except TypeError as e:
@@ -39,7 +38,7 @@ def is_concrete(x) -> bool:
 def check_shape(name: str, x, expected: tuple, what: str = "") -> None:
     """Check the trailing shape of `x` against `expected` (`None` = any size)."""
     tail = x.shape[x.ndim - len(expected):] if len(expected) else ()
-    ok = len(tail) == len(expected) and all(e is None or e == s for e, s in zip(expected, tail))
+    ok = len(tail) == len(expected) and all(e is None or e == s for e, s in zip(expected, tail, strict=True))
     if not ok:
         shown = "(" + ", ".join("?" if e is None else str(e) for e in expected) + ("," if len(expected) == 1 else "") + ")"
         extra = f" {what}" if what else ""

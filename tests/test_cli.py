@@ -1,11 +1,9 @@
 """The `jdrkf` command line and the experiment registry."""
 
 import json
-import math
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
 import jdrkf.experiments
