@@ -48,6 +48,9 @@ class AbstractNoise(eqx.Module):
     def cov(self) -> Float[Array, "d d"]:
         """Covariance of the law (at `t = 0` for time-varying laws)."""
 
+    def check_horizon(self, num_steps: int) -> None:
+        """Eager check that a time-varying law covers `num_steps` steps (no-op here)."""
+
 
 def _cov_and_mean(cov, mean):
     cov = as_float_array("cov", cov, (2,))
@@ -251,6 +254,20 @@ class ScaledNoise(AbstractNoise):
 
     base: AbstractNoise
     scale: Float[Array, " T"] | Callable
+
+    def __init__(self, base: AbstractNoise, scale: Float[ArrayLike, " T"] | Callable):
+        if not isinstance(base, AbstractNoise):
+            raise ValueError(f"base must be a jdrkf noise law, got {type(base).__name__}")
+        if not callable(scale):
+            scale = as_float_array("scale", scale, (1,)).astype(base.cov.dtype)
+            if is_concrete(scale) and bool(jnp.any(scale < 0)):
+                raise ValueError("scale must be nonnegative (it multiplies a covariance)")
+        self.base, self.scale = base, scale
+
+    def check_horizon(self, num_steps: int) -> None:
+        if not callable(self.scale) and self.scale.shape[0] < num_steps:
+            raise ValueError(f"scale has {self.scale.shape[0]} entries but {num_steps} steps were requested")
+        self.base.check_horizon(num_steps)
 
     @property
     def dim(self):

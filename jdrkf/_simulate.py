@@ -54,6 +54,8 @@ def _check_law(name: str, law, dim: int, dtype) -> AbstractNoise | None:
         raise ValueError(f"{name} must be a jdrkf noise law (e.g. jdrkf.GaussianNoise) or a jdrkf.Gaussian, got {type(law).__name__}")
     if law.dim != dim:
         raise ValueError(f"{name} draws vectors of dimension {law.dim} but {dim} is needed")
+    if law.mean.dtype != dtype:
+        raise ValueError(f"{name} has dtype {law.mean.dtype} but the model has dtype {dtype}; build both in one precision")
     return law
 
 
@@ -105,6 +107,9 @@ def simulate(
     prior = _check_law("prior", prior, n, dtype)
     process_noise = _check_law("process_noise", process_noise, q, dtype)
     measurement_noise = _check_law("measurement_noise", measurement_noise, m, dtype)
+    for law in (process_noise, measurement_noise):
+        if law is not None:
+            law.check_horizon(num_steps)
     return _simulate(key, model, prior, process_noise, measurement_noise, inputs, transition_perturbation, num_steps, num_runs)
 
 

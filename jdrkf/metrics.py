@@ -79,7 +79,8 @@ def _t_quantile(p: float, dof: int) -> float:
 def mean_ci(values: ArrayLike, level: float = 0.95) -> tuple[float, tuple[float, float]]:
     """Sample mean and its two-sided `level` confidence interval (Student t, `N − 1` dof).
 
-    NaN values are an error (a failed run must not vanish from the average).
+    NaN values are an error (a failed run must not vanish from the average). With a
+    single value the interval is `(nan, nan)`.
     """
     v = np.asarray(values, dtype=np.float64).ravel()
     if v.size == 0:
