@@ -21,6 +21,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 __all__ = [
     "symmetrize",
+    "cholesky",
     "cho_solve",
     "psd_solve",
     "psd_sqrt",
@@ -36,9 +37,54 @@ def symmetrize(a: Float[ArrayLike, "... n n"]) -> Float[Array, "... n n"]:
     return 0.5 * (a + jnp.swapaxes(a, -1, -2))
 
 
+# Matrices up to this size are factorized and solved with unrolled elementwise code.
+# Under `vmap` over many runs, XLA's per-matrix LAPACK calls for tiny matrices dominate
+# the Kalman step; unrolled code vectorizes across the batch instead (3x faster at
+# n = 1, see benchmarks/kf_throughput.py). The arithmetic is the same algorithm.
+UNROLL_MAX = 6
+
+
+def _unrolled_cholesky(a):
+    n = a.shape[-1]
+    low = [[None] * n for _ in range(n)]
+    for j in range(n):
+        s = a[j, j] - sum((low[j][k] ** 2 for k in range(j)), start=jnp.zeros((), a.dtype))
+        # Non-positive pivot -> NaN, as jnp.linalg.cholesky reports failure.
+        d = jnp.where(s > 0, jnp.sqrt(jnp.where(s > 0, s, 1.0)), jnp.nan)
+        low[j][j] = d
+        for i in range(j + 1, n):
+            low[i][j] = (a[i, j] - sum((low[i][k] * low[j][k] for k in range(j)), start=jnp.zeros((), a.dtype))) / d
+    zero = jnp.zeros((), a.dtype)
+    return jnp.stack([jnp.stack([low[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def cholesky(a: Float[ArrayLike, "n n"]) -> Float[Array, "n n"]:
+    """Lower Cholesky factor of a symmetric positive-definite matrix.
+
+    NaN entries signal a matrix that is not numerically positive definite (the
+    convention of `jnp.linalg.cholesky`). Matrices up to `UNROLL_MAX` in size use
+    unrolled elementwise code, which is much faster under `vmap`.
+    """
+    a = jnp.asarray(a)
+    return _unrolled_cholesky(a) if a.shape[-1] <= UNROLL_MAX else jnp.linalg.cholesky(a)
+
+
+def _unrolled_cho_solve(chol, b):
+    n = chol.shape[-1]
+    z = []
+    for i in range(n):  # forward substitution L z = b
+        z.append((b[i] - sum((chol[i, k] * z[k] for k in range(i)), start=jnp.zeros_like(b[i]))) / chol[i, i])
+    x = [None] * n
+    for i in reversed(range(n)):  # back substitution Lᵀ x = z
+        x[i] = (z[i] - sum((chol[k, i] * x[k] for k in range(i + 1, n)), start=jnp.zeros_like(b[i]))) / chol[i, i]
+    return jnp.stack(x)
+
+
 def cho_solve(chol: Float[Array, "n n"], b: Float[ArrayLike, "n ..."]) -> Float[Array, "n ..."]:
     """Solve `(L Lᵀ) x = b` given the lower Cholesky factor `L`."""
     b = jnp.asarray(b)
+    if chol.shape[-1] <= UNROLL_MAX:
+        return _unrolled_cho_solve(chol, b)
     vec = b.ndim == 1
     b2 = b[:, None] if vec else b
     z = jax.scipy.linalg.solve_triangular(chol, b2, lower=True)
@@ -52,7 +98,7 @@ def psd_solve(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n ..."]) -> Float
     Returns NaNs when `a` is not numerically positive definite (JAX's Cholesky
     convention); callers turn that into a result code.
     """
-    return cho_solve(jnp.linalg.cholesky(symmetrize(a)), b)
+    return cho_solve(cholesky(symmetrize(a)), b)
 
 
 @jax.custom_jvp

@@ -56,7 +56,7 @@ def update(
     observed, h, r, resid = _masked_measurement(mdl, y)
     innov = resid - h @ predicted.mean
     s = linalg.symmetrize(h @ predicted.cov @ h.T + r)
-    chol_s = jnp.linalg.cholesky(s)
+    chol_s = linalg.cholesky(s)
     failed = ~jnp.all(jnp.isfinite(chol_s))
     gain = linalg.cho_solve(chol_s, h @ predicted.cov).T
     mean = predicted.mean + gain @ innov
@@ -138,7 +138,7 @@ class SteadyStateKalmanFilter(AbstractFilter):
 
     def init(self, model: LinearModel, prior: Gaussian):
         ss = self.solve(model)
-        return prior.mean, ss, jnp.linalg.cholesky(ss.innovation_cov)
+        return prior.mean, ss, linalg.cholesky(ss.innovation_cov)
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
         mean, ss, chol_s = state
@@ -151,7 +151,7 @@ class SteadyStateKalmanFilter(AbstractFilter):
         # Log-likelihood over the observed components: marginal of N(0, S) on them.
         _, h, r, _ = _masked_measurement(model, y)
         s_obs = linalg.symmetrize(h @ ss.predicted_cov @ h.T + r)
-        chol_obs = jnp.linalg.cholesky(s_obs)
+        chol_obs = linalg.cholesky(s_obs)
         loglik = _gaussian_loglik(chol_obs, innov, jnp.sum(observed.astype(innov.dtype)))
         pred = Gaussian(mean_pred, ss.predicted_cov)
         filt = Gaussian(mean_filt, ss.filtered_cov)
