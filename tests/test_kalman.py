@@ -276,3 +276,31 @@ def test_float32_long_run_covariances_stay_symmetric_psd(system):
     np.testing.assert_array_equal(covs, np.swapaxes(covs, -1, -2))
     assert np.min(np.linalg.eigvalsh(covs.astype(np.float64))) >= -1e-5 * np.max(np.abs(covs))
     assert res.result == jdrkf.RESULTS.successful
+
+
+def test_nan_as_missing_false_equals_default_and_fails_loudly_on_nan(rng):
+    fields, u, m0, P0, ys = _time_varying_problem(rng, missing=False)
+    model, prior = jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0)
+    a = jdrkf.KalmanFilter()(model, prior, ys, inputs=u)
+    b = jdrkf.KalmanFilter(nan_as_missing=False)(model, prior, ys, inputs=u)
+    np.testing.assert_allclose(b.filtered_means, a.filtered_means, atol=1e-12)
+    np.testing.assert_allclose(b.filtered_covariances, a.filtered_covariances, atol=1e-12)
+    np.testing.assert_allclose(b.marginal_loglik, a.marginal_loglik, rtol=1e-12)
+    ys[4, 0] = np.nan
+    res = jdrkf.KalmanFilter(nan_as_missing=False, throw=False)(model, prior, ys, inputs=u)
+    assert res.result == jdrkf.RESULTS.nonfinite_state
+
+
+def test_nan_as_missing_false_shares_covariance_under_vmap(rng):
+    # Without masking the covariance recursion does not depend on the data, so vmap
+    # leaves it unbatched: the jaxpr of the batched filter has no batched Cholesky.
+    model = jdrkf.LinearModel(_random_stable(rng, 2), rng.normal(size=(1, 2)), np.eye(2), np.eye(1))
+    prior = jdrkf.Gaussian(np.zeros(2), np.eye(2))
+    ys = rng.normal(size=(4, 10, 1))
+    shared = jax.vmap(jdrkf.KalmanFilter(nan_as_missing=False), in_axes=(None, None, 0))(model, prior, ys)
+    masked = jax.vmap(jdrkf.KalmanFilter(), in_axes=(None, None, 0))(model, prior, ys)
+    np.testing.assert_allclose(shared.filtered_means, masked.filtered_means, atol=1e-12)
+    jaxpr = jax.make_jaxpr(jax.vmap(jdrkf.KalmanFilter(nan_as_missing=False), in_axes=(None, None, 0)))(model, prior, ys)
+    scan = next(e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan")
+    cov_carry = [v.aval.shape for v in scan.outvars[: scan.params["num_carry"]]]
+    assert (2, 2) in cov_carry and (4, 2, 2) not in cov_carry
