@@ -304,3 +304,16 @@ def test_nan_as_missing_false_shares_covariance_under_vmap(rng):
     scan = next(e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan")
     cov_carry = [v.aval.shape for v in scan.outvars[: scan.params["num_carry"]]]
     assert (2, 2) in cov_carry and (4, 2, 2) not in cov_carry
+
+
+def test_steady_state_nan_as_missing_false_matches_default_on_complete_data(rng):
+    n, m = 3, 2
+    F, H, Q, R = _random_stable(rng, n, 0.8), rng.normal(size=(m, n)), _random_spd(rng, n), _random_spd(rng, m)
+    model, prior = jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(np.zeros(n), np.eye(n))
+    _, ys = numpy_simulate_lgssm(rng, np.zeros(n), np.eye(n), F, H, Q, R, 50)
+    a = jdrkf.SteadyStateKalmanFilter()(model, prior, ys)
+    b = jdrkf.SteadyStateKalmanFilter(nan_as_missing=False)(model, prior, ys)
+    np.testing.assert_allclose(b.filtered_means, a.filtered_means, atol=1e-12)
+    np.testing.assert_allclose(b.loglik_increments, a.loglik_increments, atol=1e-12)
+    ys[5, 1] = np.nan
+    assert jdrkf.SteadyStateKalmanFilter(nan_as_missing=False, throw=False)(model, prior, ys).result == jdrkf.RESULTS.nonfinite_state

@@ -134,13 +134,16 @@ class SteadyStateKalmanFilter(AbstractFilter):
 
     `solve(model)` computes the steady state once (DARE by doubling, in JAX,
     differentiable by implicit differentiation — see `jdrkf.linalg.solve_dare`); each
-    step then costs two matrix–vector products. The prior's mean starts the
+    step then costs matrix–vector products only. The prior's mean starts the
     recursion; its covariance is not used (reported covariances are the steady ones
     from the first step on). Missing components of `y` (NaN) contribute no
-    correction (their gain columns are dropped); the gain is not recomputed.
+    correction (their gain columns are dropped; the gain is not recomputed) and the
+    log-likelihood marginalizes them, which costs an `m × m` Cholesky per step;
+    `nan_as_missing=False` skips that (NaN data then make the run fail).
     """
 
     throw: bool = eqx.field(default=True, static=True)
+    nan_as_missing: bool = eqx.field(default=True, static=True)
 
     @staticmethod
     def solve(model: LinearModel) -> SteadyStateGain:
@@ -163,14 +166,17 @@ class SteadyStateKalmanFilter(AbstractFilter):
         mean_pred = model.F @ mean + model.G @ model.process_mean
         if model.B is not None:
             mean_pred = mean_pred + model.B @ u
-        observed = ~jnp.isnan(y)
-        innov = jnp.where(observed, y - model.noise_mean - model.H @ mean_pred, 0.0)
+        innov = y - model.noise_mean - model.H @ mean_pred
+        if self.nan_as_missing:
+            # Drop missing components; the log-likelihood is the marginal of N(0, S) on the rest.
+            observed, h, r, _ = _masked_measurement(model, y)
+            innov = jnp.where(observed, innov, 0.0)
+            chol_obs = linalg.cholesky(linalg.symmetrize(h @ ss.predicted_cov @ h.T + r))
+            num_observed = jnp.sum(observed.astype(innov.dtype))
+        else:
+            chol_obs, num_observed = chol_s, y.shape[0]
         mean_filt = mean_pred + ss.gain @ innov
-        # Log-likelihood over the observed components: marginal of N(0, S) on them.
-        _, h, r, _ = _masked_measurement(model, y)
-        s_obs = linalg.symmetrize(h @ ss.predicted_cov @ h.T + r)
-        chol_obs = linalg.cholesky(s_obs)
-        loglik = _gaussian_loglik(chol_obs, innov, jnp.sum(observed.astype(innov.dtype)))
+        loglik = _gaussian_loglik(chol_obs, innov, num_observed)
         pred = Gaussian(mean_pred, ss.predicted_cov)
         filt = Gaussian(mean_filt, ss.filtered_cov)
         failed = ~jnp.all(jnp.isfinite(chol_s))
