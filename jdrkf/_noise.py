@@ -69,14 +69,11 @@ def _check_probability(name, p, upper=1.0):
     return p
 
 
-class GaussianNoise(AbstractNoise):
-    """`N(mean, cov)` noise (all of it nominal)."""
+class _NominalGaussianNoise(AbstractNoise):
+    """Laws built on a nominal `N(mean, cov)` draw (shared fields and moments)."""
 
     _cov: Float[Array, "d d"]
     _mean: Float[Array, " d"]
-
-    def __init__(self, cov: Float[ArrayLike, "d d"], mean: Float[ArrayLike, " d"] | None = None):
-        self._cov, self._mean = _cov_and_mean(cov, mean)
 
     @property
     def dim(self):
@@ -90,20 +87,27 @@ class GaussianNoise(AbstractNoise):
     def cov(self):
         return self._cov
 
+    def _nominal(self, key):
+        return self._mean + linalg.psd_sqrt(self._cov) @ jax.random.normal(key, (self.dim,), self._cov.dtype)
+
+
+class GaussianNoise(_NominalGaussianNoise):
+    """`N(mean, cov)` noise (all of it nominal)."""
+
+    def __init__(self, cov: Float[ArrayLike, "d d"], mean: Float[ArrayLike, " d"] | None = None):
+        self._cov, self._mean = _cov_and_mean(cov, mean)
+
     def sample_parts(self, key, t=0):
-        z = jax.random.normal(key, (self.dim,), self._cov.dtype)
-        return self._mean + linalg.psd_sqrt(self._cov) @ z, jnp.zeros(self.dim, self._cov.dtype)
+        return self._nominal(key), jnp.zeros(self.dim, self._cov.dtype)
 
 
-class MixtureNoise(AbstractNoise):
+class MixtureNoise(_NominalGaussianNoise):
     """Contaminated Gaussian `(1 − p) N(μ, R) + p N(μ, k R)` (`k = scale ≥ 1`).
 
     Drawn as `N(μ, R)` (nominal) plus, with probability `p` for the whole vector, an
     independent `N(0, (k − 1) R)` (outlier); the sum has exactly the mixture law.
     """
 
-    _cov: Float[Array, "d d"]
-    _mean: Float[Array, " d"]
     p: Float[Array, ""]
     scale: Float[Array, ""]
 
@@ -116,32 +120,19 @@ class MixtureNoise(AbstractNoise):
         self.scale = scale.astype(self._cov.dtype)
 
     @property
-    def dim(self):
-        return self._cov.shape[-1]
-
-    @property
-    def mean(self):
-        return self._mean
-
-    @property
     def cov(self):
         return (1.0 - self.p + self.p * self.scale) * self._cov
 
     def sample_parts(self, key, t=0):
         k1, k2, k3 = jax.random.split(key, 3)
-        root = linalg.psd_sqrt(self._cov)
-        nominal = self._mean + root @ jax.random.normal(k1, (self.dim,), self._cov.dtype)
-        extra = jnp.sqrt(self.scale - 1.0) * (root @ jax.random.normal(k2, (self.dim,), self._cov.dtype))
-        hit = jax.random.bernoulli(k3, self.p)
-        return nominal, jnp.where(hit, extra, 0.0)
+        extra = jnp.sqrt(self.scale - 1.0) * (self._nominal(k2) - self._mean)
+        return self._nominal(k1), jnp.where(jax.random.bernoulli(k3, self.p), extra, 0.0)
 
 
-class OutlierNoise(AbstractNoise):
+class OutlierNoise(_NominalGaussianNoise):
     """`N(μ, R)` plus, independently in each channel with probability `p`, an outlier
     `±magnitude` (sign equiprobable): seed 000's outlier model (`magnitude = 100`)."""
 
-    _cov: Float[Array, "d d"]
-    _mean: Float[Array, " d"]
     p: Float[Array, ""]
     magnitude: Float[Array, ""]
 
@@ -151,32 +142,21 @@ class OutlierNoise(AbstractNoise):
         self.magnitude = as_float_array("magnitude", magnitude, (0,)).astype(self._cov.dtype)
 
     @property
-    def dim(self):
-        return self._cov.shape[-1]
-
-    @property
-    def mean(self):
-        return self._mean
-
-    @property
     def cov(self):
         return self._cov + self.p * self.magnitude**2 * jnp.eye(self.dim, dtype=self._cov.dtype)
 
     def sample_parts(self, key, t=0):
         k1, k2, k3 = jax.random.split(key, 3)
-        nominal = self._mean + linalg.psd_sqrt(self._cov) @ jax.random.normal(k1, (self.dim,), self._cov.dtype)
         hit = jax.random.bernoulli(k2, self.p, (self.dim,))
         sign = jnp.where(jax.random.bernoulli(k3, 0.5, (self.dim,)), 1.0, -1.0)
-        return nominal, jnp.where(hit, sign * self.magnitude, 0.0).astype(self._cov.dtype)
+        return self._nominal(k1), jnp.where(hit, sign * self.magnitude, 0.0).astype(self._cov.dtype)
 
 
-class StudentTNoise(AbstractNoise):
+class StudentTNoise(_NominalGaussianNoise):
     """Multivariate Student-t with `dof > 2` degrees of freedom, scaled so that its
     covariance is `cov`: `μ + sqrt((ν − 2)/g) · cov^½ z`, `g ~ χ²_ν`, `z ~ N(0, I)`.
     Heavy-tailed but outlier-free in the `sample_parts` sense (all of it nominal)."""
 
-    _cov: Float[Array, "d d"]
-    _mean: Float[Array, " d"]
     dof: Float[Array, ""]
 
     def __init__(self, cov, dof, mean=None):
@@ -186,23 +166,10 @@ class StudentTNoise(AbstractNoise):
             raise ValueError(f"dof must be > 2 for the covariance to exist, got {float(dof)}")
         self.dof = dof.astype(self._cov.dtype)
 
-    @property
-    def dim(self):
-        return self._cov.shape[-1]
-
-    @property
-    def mean(self):
-        return self._mean
-
-    @property
-    def cov(self):
-        return self._cov
-
     def sample_parts(self, key, t=0):
         k1, k2 = jax.random.split(key)
-        z = jax.random.normal(k1, (self.dim,), self._cov.dtype)
         g = 2.0 * jax.random.gamma(k2, self.dof / 2.0, dtype=self._cov.dtype)
-        x = self._mean + jnp.sqrt((self.dof - 2.0) / g) * (linalg.psd_sqrt(self._cov) @ z)
+        x = self._mean + jnp.sqrt((self.dof - 2.0) / g) * (self._nominal(k1) - self._mean)
         return x, jnp.zeros_like(x)
 
 
