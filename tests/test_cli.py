@@ -18,7 +18,6 @@ def test_list(capsys):
 
 
 def test_reproduce_table_json_and_plot(tmp_path, capsys):
-    pytest.importorskip("matplotlib")
     path = tmp_path / "t3.json"
     code = cli.main(["reproduce", "wang-ye-table3", "--runs", "4", "--seed", "7", "--json", str(path), "--plots", str(tmp_path), "--no-progress"])
     assert code == 0

@@ -3,6 +3,7 @@
 import functools
 
 import equinox as eqx
+import filterpy.kalman as filterpy_kalman
 import hypothesis
 import hypothesis.strategies as st
 import jax
@@ -56,7 +57,6 @@ def test_matches_numpy_oracle_time_varying_controls_missing(rng):
 
 
 def test_matches_filterpy(rng):
-    filterpy_kalman = pytest.importorskip("filterpy.kalman")
     n, m, T = 3, 2, 60
     F, H, Q, R = _random_stable(rng, n), rng.normal(size=(m, n)), _random_spd(rng, n), _random_spd(rng, m)
     m0, P0 = rng.normal(size=n), _random_spd(rng, n)

@@ -95,3 +95,10 @@ def test_sharded_over_two_host_devices_matches_single_device(tmp_path):
     proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "OK 2" in proc.stdout
+
+
+def test_progress_bar_counts_chunks(capsys):
+    model, prior, traj = _setup(runs=5, T=5)
+    jdrkf.montecarlo({"KF": jdrkf.KalmanFilter()}, model, prior, traj, chunk_size=2, progress=True)
+    err = capsys.readouterr().err
+    assert "Monte Carlo chunks" in err and "3/3" in err
