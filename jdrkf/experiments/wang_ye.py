@@ -82,7 +82,7 @@ def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress
     for f in flts:
         if paper.get(f) is not None:
             pct = 100.0 * float(np.mean(np.asarray(out[f]["rmse"]) <= paper[f]))
-            notes.append(f"{f}: the paper's single-episode {paper[f]:g} lies at the {pct:.0f}th percentile of our per-run RMSEs.")
+            notes.append(f"{f}: the paper's single-episode {paper[f]:g} is at or above {pct:.0f}% of our per-run RMSEs.")
     notes.append("Filters HKF, tau-KF, WKF and MKF of the paper's table are not implemented yet in jdrkf; their paper numbers are omitted.")
     report = Report(experiment=name, seed=seed, rows=rows, notes=notes)
     if curves:
