@@ -12,7 +12,6 @@ Every function works on float32 and float64 inputs and is safe under `jax.jit`,
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 from jax import lax

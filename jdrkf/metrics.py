@@ -12,6 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from . import linalg
+
 
 __all__ = ["rmse", "rtamse", "squared_error", "mse_per_step", "nees", "mean_ci"]
 
@@ -52,9 +54,8 @@ def nees(
 ) -> Float[Array, "... T"]:
     """Normalized estimation error squared `(x − x̂)ᵀ P⁻¹ (x − x̂)`; `n` on average for a consistent filter."""
     err = jnp.asarray(states) - jnp.asarray(means)
-    chol = jnp.linalg.cholesky(jnp.asarray(covariances))
-    z = jax.scipy.linalg.solve_triangular(chol, err[..., None], lower=True)[..., 0]
-    return jnp.sum(z**2, axis=-1)
+    solve = jnp.vectorize(linalg.psd_solve, signature="(n,n),(n)->(n)")
+    return jnp.sum(err * solve(jnp.asarray(covariances), err), axis=-1)
 
 
 def _t_quantile(p: float, dof: int) -> float:
