@@ -29,6 +29,11 @@ class RESULTS(eqx.Enumeration):
         "Kalman update could not be computed. Check that R is positive definite, that the "
         "state covariance stays PSD (run in float64), and that the model is not diverging."
     )
+    solver_not_converged = (
+        "The worst-case covariance solver of a distributionally robust filter did not reach its "
+        "tolerance within max_iter iterations. Raise max_iter, loosen rtol (float32 needs about "
+        "1e-5), or check that the nominal covariances are well conditioned."
+    )
     nonfinite_state = (
         "The filtered mean or covariance became non-finite (inf/NaN). Common causes: NaN or inf "
         "in the inputs, an unstable model over a long horizon in float32, or an upstream bug."
