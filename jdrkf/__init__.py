@@ -2,7 +2,7 @@
 
 import importlib.metadata
 
-from . import linalg as linalg, metrics as metrics
+from . import linalg as linalg, metrics as metrics, sets as sets, tuning as tuning
 from ._gaussian import Gaussian as Gaussian
 from ._models import LinearModel as LinearModel
 from ._montecarlo import Clairvoyant as Clairvoyant, montecarlo as montecarlo
@@ -19,12 +19,17 @@ from ._noise import (
 from ._simulate import Trajectories as Trajectories, simulate as simulate
 from .filters import (
     AbstractFilter as AbstractFilter,
+    DRKF as DRKF,
     FilterResult as FilterResult,
+    HuberKF as HuberKF,
     KalmanFilter as KalmanFilter,
     RESULTS as RESULTS,
+    RiskSensitiveKF as RiskSensitiveKF,
     SteadyStateGain as SteadyStateGain,
     SteadyStateKalmanFilter as SteadyStateKalmanFilter,
     StepOutput as StepOutput,
+    TauKF as TauKF,
+    WassersteinKF as WassersteinKF,
     predict as predict,
     update as update,
 )

@@ -68,10 +68,12 @@ def main(argv: list[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report.to_json(), indent=2))
     if args.plots is not None:
-        from .plotting import plot_error_curves
+        from .plotting import plot_error_curves, plot_sweeps
 
-        path = plot_error_curves(report, args.plots / f"{report.experiment}.png")
-        print(f"figure: {path}")
+        if report.curves:
+            print(f"figure: {plot_error_curves(report, args.plots / f'{report.experiment}.png')}")
+        if report.sweeps:
+            print(f"figure: {plot_sweeps(report, args.plots / f'{report.experiment}-sweeps.png')}")
     return 0
 
 

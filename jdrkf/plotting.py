@@ -28,6 +28,40 @@ def moving_average(x: np.ndarray, window: int) -> np.ndarray:
     return (c[idx] - c[lo]) / (idx - lo)
 
 
+def _save(fig, plt, path):
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_sweeps(report: Report, path: str | pathlib.Path) -> pathlib.Path:
+    """One panel per parameter sweep of the report: mean over runs with a 95% band per
+    filter, and the paper's numbers as markers where given. Returns the file path."""
+    if not report.sweeps:
+        raise ValueError("the report has no parameter sweeps")
+    from . import metrics
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(report.sweeps), figsize=(6 * len(report.sweeps), 4), squeeze=False)
+    for ax, (title, sw) in zip(axes[0], report.sweeps.items(), strict=True):
+        for name, vals in sw.values.items():
+            stats = [metrics.mean_ci(vals[:, j]) for j in range(len(sw.x))]
+            mean = np.array([m for m, _ in stats])
+            (line,) = ax.plot(sw.x, mean, label=name)
+            ax.fill_between(sw.x, [c[0] for _, c in stats], [c[1] for _, c in stats], color=line.get_color(), alpha=0.2)
+            if name in sw.paper:
+                ax.plot(sw.x, sw.paper[name], "x", color=line.get_color())
+        ax.set_xlabel(sw.x_label)
+        ax.set_ylabel("RMSE")
+        ax.set_title(title + (" (x: paper)" if sw.paper else ""))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    return _save(fig, plt, path)
+
+
 def plot_error_curves(report: Report, path: str | pathlib.Path, window: int = 50) -> pathlib.Path:
     """Per-step mean squared error `10 log10(e_k)` smoothed over `window` steps, one
     line per filter (the style of Wang & Ye 2022, Figs. 1–2). Returns the file path."""
@@ -42,9 +76,4 @@ def plot_error_curves(report: Report, path: str | pathlib.Path, window: int = 50
     ax.set_title(report.experiment)
     ax.legend()
     ax.grid(alpha=0.3)
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, plt, path)

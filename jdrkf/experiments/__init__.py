@@ -6,6 +6,7 @@ from ._registry import (
     Experiment as Experiment,
     Report as Report,
     Row as Row,
+    Sweep as Sweep,
     get as get,
     register as register,
 )

@@ -28,15 +28,28 @@ class Row:
 
 
 @dataclasses.dataclass
+class Sweep:
+    """Per-run values of several filters over a swept parameter: `values[name]` has
+    shape `(runs, len(x))`; `paper[name]` optionally gives the paper's numbers at `x`
+    (NaN where the paper has none)."""
+
+    x_label: str
+    x: np.ndarray
+    values: dict[str, np.ndarray]
+    paper: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass
 class Report:
     """Result of an experiment: rows, free-text notes (how and why we differ from the
-    paper), the seed, and optional per-step curves for plotting."""
+    paper), the seed, and optional per-step curves and parameter sweeps for plotting."""
 
     experiment: str
     seed: int
     rows: list[Row]
     notes: list[str] = dataclasses.field(default_factory=list)
     curves: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    sweeps: dict[str, Sweep] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {

@@ -12,20 +12,28 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
-from .. import metrics
+from .. import metrics, tuning
 from .._gaussian import Gaussian
 from .._models import LinearModel
 from .._montecarlo import Clairvoyant, montecarlo
 from .._noise import GaussianNoise, OutlierNoise, UniformPerturbation
 from .._simulate import simulate
-from ..filters import KalmanFilter
+from ..filters import DRKF, HuberKF, KalmanFilter, TauKF, WassersteinKF
+from ..sets import EpsContamination, Moment
 from ._registry import Experiment, Report, Row, register
 
 
 NUM_STEPS = 1000
 OUTLIER_PROB = 0.05
 OUTLIER_MAGNITUDE = 100.0
+# Paper parameters (Sec. VII-B): HKF k = 1.4 (ε = 0.05); τ-KF τ = 0, c = 1.5e-4; WKF ρ = 0.1;
+# MKF θ₂ₓ = θ₂ᵥ = 1.02, k = 1.4, ε = 0.05.
+EPS, HUBER_K, TAU_C, WKF_RHO, MKF_THETA2 = 0.05, 1.4, 1.5e-4, 0.1, 1.02
+# Tuned MKF: θ₂ fitted by Adam on TRAIN_RUNS runs simulated with a key independent of the
+# evaluation runs, starting from TUNE_START.
+TRAIN_RUNS, TUNE_STEPS, TUNE_START = 16, 40, 1.05
 
 # Paper numbers (RMSE, one episode each): Table I (α=1, no outliers), II (α=0, outliers), III (both).
 PAPER = {
@@ -56,17 +64,44 @@ def scenario(key, num_runs: int, alpha: float, outliers: bool, num_steps: int = 
     return simulate(key, model, prior(), num_steps, num_runs, measurement_noise=noise, transition_perturbation=perturb)
 
 
+def mkf(theta2: float = MKF_THETA2) -> DRKF:
+    """The paper's MKF: moment sets with `θ₂ₓ = θ₂ᵥ = theta2` and ε-contamination outliers."""
+    return DRKF(state_set=Moment(theta2), noise_set=Moment(theta2), outliers=EpsContamination(EPS, k=HUBER_K), throw=False)
+
+
 def filters():
-    """The filters registered so far, labelled as in the paper."""
-    return {"TMKF": Clairvoyant(KalmanFilter()), "KF": KalmanFilter()}
+    """The six filters of Tables I–III with the paper's parameters, labelled as in the paper."""
+    return {
+        "TMKF": Clairvoyant(KalmanFilter(throw=False)),
+        "KF": KalmanFilter(throw=False),
+        "HKF": HuberKF(EPS, HUBER_K, throw=False),
+        "tau-KF": TauKF(0.0, TAU_C, throw=False),
+        "WKF": WassersteinKF(WKF_RHO, throw=False),
+        "MKF": mkf(),
+    }
+
+
+def tune_mkf(key, alpha: float, outliers: bool, runs: int = TRAIN_RUNS, steps: int = TUNE_STEPS) -> tuning.FitResult:
+    """Fit the MKF's `θ₂` (tied for state and noise) by gradient descent on the mean
+    RMSE of `runs` training runs of the scenario simulated with `key`."""
+    train = scenario(key, runs, alpha, outliers)
+    objective = tuning.rmse_objective(nominal_model(), prior(), train)
+    return tuning.fit(
+        mkf(TUNE_START), objective, where=lambda f: (f.state_set.theta2, f.noise_set.theta2),
+        bounds=(1.0, None), shared=True, optimizer=optax.adam(0.05), steps=steps,
+    )
 
 
 def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress: bool = False, curves: bool = False) -> Report:
-    traj = scenario(jax.random.key(seed), runs, alpha, outliers)
+    key = jax.random.key(seed)
+    traj = scenario(key, runs, alpha, outliers)
     mets = {"rmse": lambda tr, res: metrics.rmse(tr.states, res.filtered_means)}
     if curves:
         mets["squared_error"] = lambda tr, res: metrics.squared_error(tr.states, res.filtered_means)
-    flts = filters()
+    fitted = tune_mkf(jax.random.fold_in(key, 2**31 - 1), alpha, outliers)
+    flts = filters() | {"MKF-tuned": fitted.filter}
+    if not outliers:  # diagnostic: the MKF without its outlier model (no Huber clipping)
+        flts["MKF-no-clip"] = DRKF(state_set=Moment(MKF_THETA2), noise_set=Moment(MKF_THETA2), throw=False)
     out = montecarlo(flts, nominal_model(), prior(), traj, metrics=mets, chunk_size=500, progress=progress)
     paper = PAPER[name]
     rows = [Row.from_values(f, "rmse", paper.get(f), out[f]["rmse"]) for f in flts]
@@ -90,7 +125,28 @@ def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress
         if paper.get(f) is not None:
             pct = 100.0 * float(np.mean(np.asarray(out[f]["rmse"]) <= paper[f]))
             notes.append(f"{f}: the paper's single-episode {paper[f]:g} is at or above {pct:.0f}% of our per-run RMSEs.")
-    notes.append("Filters HKF, tau-KF, WKF and MKF of the paper's table are not implemented yet in jdrkf; their paper numbers are omitted.")
+    if not outliers:
+        mean = {r.filter: r.mean for r in rows}
+        notes.append(
+            "Without outliers, Huber clipping only discards information: the MKF (clipping at k = 1.4 as in "
+            f"the paper) has RMSE {mean['MKF']:.3g} here, the same filter without an outlier model "
+            f"(MKF-no-clip) {mean['MKF-no-clip']:.3g}; HKF vs KF shows the same cost (ours {mean['HKF']:.3g} vs "
+            f"{mean['KF']:.3g}; paper 14.74 vs 14.52). The paper's tau-KF, MKF and WKF (9.90, 9.91, 9.95) tie "
+            "within 0.5% on one episode, with the MKF's θ₂ picked post hoc on that episode, so a different "
+            "order among these three is within the paper's own noise."
+        )
+    theta2 = float(fitted.params[int(np.argmin(fitted.losses)), 0])
+    notes += [
+        f"MKF-tuned: θ₂ₓ = θ₂ᵥ fitted by Adam ({TUNE_STEPS} steps from {TUNE_START}) on the mean RMSE of {TRAIN_RUNS} "
+        f"training runs simulated with a key independent of the evaluation runs: θ₂ = {theta2:.4f} "
+        f"(paper: {MKF_THETA2}, chosen post hoc on the test episode by the authors' FindBestGamma).",
+        "tau-KF is Zorzi's filter as published (filtered estimate x̂_{k|k}, noise covariances as given). The "
+        "authors' code fed it one-step-delayed measurements (so it output x̂_{k|k-1} against everyone's x̂_{k|k}) "
+        "and passed covariances where square-root factors were expected (process covariance ≈ 3.84 I instead "
+        "of 1.96 I); that handicap is why the paper's tau-KF numbers are worse than ours.",
+        "WKF: the authors' Frank–Wolfe stops at a 1e-4 relative gap with 2/(k+2) steps; ours solves each step "
+        "to round-off (backtracking Frank–Wolfe + Newton polish).",
+    ]
     report = Report(experiment=name, seed=seed, rows=rows, notes=notes)
     if curves:
         report.curves = {f: np.mean(out[f]["squared_error"], axis=0) for f in flts}

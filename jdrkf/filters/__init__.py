@@ -13,3 +13,5 @@ from ._kalman import (
     predict as predict,
     update as update,
 )
+from ._dr import DRKF as DRKF, HuberKF as HuberKF, WassersteinKF as WassersteinKF
+from ._divergence import RiskSensitiveKF as RiskSensitiveKF, TauKF as TauKF

@@ -34,6 +34,11 @@ class RESULTS(eqx.Enumeration):
         "tolerance within max_iter iterations. Raise max_iter, loosen rtol (float32 needs about "
         "1e-5), or check that the nominal covariances are well conditioned."
     )
+    risk_sensitive_breakdown = (
+        "The risk-sensitive inflation I − θ P was not positive definite (θ ≥ 1/λ_max of the predicted "
+        "covariance), so the risk-sensitive recursion does not exist from this step on. Decrease theta, "
+        "or use TauKF, which picks θ at each step."
+    )
     nonfinite_state = (
         "The filtered mean or covariance became non-finite (inf/NaN). Common causes: NaN or inf "
         "in the inputs, an unstable model over a long horizon in float32, or an upstream bug."

@@ -10,6 +10,34 @@ from .. import linalg
 from ._base import AbstractAmbiguitySet, radius
 
 _NEWTON_MAX_ITER = 200
+# φ(x) = 1/(1 − x) − 1 + ln(1 − x) = Σ_{k≥2} (1 − 1/k) xᵏ: below this size of x the closed
+# form cancels catastrophically (its value is ≈ x²/2), so the series is used instead.
+_SERIES_BELOW = 0.05
+_SERIES_TERMS = 14
+
+
+def _phi(x):
+    """`φ(x)` elementwise, accurate for small `x` (series) and up to the pole at 1."""
+    small = jnp.abs(x) < _SERIES_BELOW
+    xs = jnp.where(small, x, 0.0)
+    series = sum((1.0 - 1.0 / k) * xs**k for k in range(2, _SERIES_TERMS))
+    xl = jnp.where(small, 0.5, x)
+    return jnp.where(small, series, xl / (1.0 - xl) + jnp.log1p(-xl))
+
+
+def _phi_trace(x, chol_a):
+    """`Tr φ(X)` for symmetric `X` with `I − X = L Lᵀ` (`chol_a`), written with solves and
+    matrix powers only (differentiable with repeated eigenvalues)."""
+    d = x.shape[-1]
+    small = jnp.sqrt(jnp.sum(x * x)) < _SERIES_BELOW
+    xs = jnp.where(small, x, 0.0)
+    power, series = xs, jnp.zeros((), x.dtype)
+    for k in range(2, _SERIES_TERMS):
+        power = power @ xs
+        series = series + (1.0 - 1.0 / k) * jnp.trace(power)
+    eye = jnp.eye(d, dtype=x.dtype)
+    closed = jnp.trace(linalg.cho_solve(chol_a, eye)) - d + 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_a)))
+    return jnp.where(small, series, closed)
 
 
 class KL(AbstractAmbiguitySet):
@@ -49,7 +77,7 @@ class KL(AbstractAmbiguitySet):
 
         def g_and_slope(t):
             w = 1.0 / (1.0 - t * mu)
-            return 0.5 * jnp.sum(w - 1.0 + jnp.log1p(-t * mu)) - c, 0.5 * jnp.sum(t * mu * mu * w * w)
+            return 0.5 * jnp.sum(_phi(t * mu)) - c, 0.5 * jnp.sum(t * mu * mu * w * w)
 
         def cond(carry):
             t, t_prev, k = carry
@@ -70,13 +98,11 @@ class KL(AbstractAmbiguitySet):
     def residual(self, cov, multiplier, direction, nominal):
         c = self.c.astype(nominal.dtype)
         t = multiplier
-        d = nominal.shape[-1]
         r = linalg.cholesky(nominal)
         w = linalg.symmetrize(r.T @ direction @ r)
-        a = jnp.eye(d, dtype=nominal.dtype) - t * w
+        a = jnp.eye(nominal.shape[-1], dtype=nominal.dtype) - t * w
         chol_a = linalg.cholesky(a)
         a_inv_rt = linalg.cho_solve(chol_a, r.T)
-        g = 0.5 * (jnp.trace(linalg.cho_solve(chol_a, jnp.eye(d, dtype=a.dtype))) - d
-                   + 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_a)))) - c
+        g = 0.5 * _phi_trace(t * w, chol_a) - c
         active = (c > 0) & (jnp.trace(w) > 0)
         return cov - linalg.symmetrize(r @ a_inv_rt), jnp.where(active, g, t)

@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
 from .._validation import as_float_array, check_covariance
-from ._base import AbstractAmbiguitySet
+from ._base import AbstractAmbiguitySet, radius
 from ._moment import Moment
 from ._wasserstein import Wasserstein
 
@@ -27,8 +27,9 @@ class WorstCase(eqx.Module):
     - `state_cov`, `noise_cov`: the worst-case prior `Σx*` and noise `Σv*` covariances.
     - `value`: `Tr(Σx* − i_min Σx*Hᵀ(HΣx*Hᵀ + Σv*)⁻¹HΣx*)`, the trace of the worst-case
       posterior covariance (eq. 41).
-    - `iterations`: Frank–Wolfe iterations; `gap`: the final Frank–Wolfe duality gap, an
-      upper bound on the optimal value minus `value`; `converged`: `gap ≤ rtol · value`.
+    - `iterations`: Frank–Wolfe iterations; `gap`: the Frank–Wolfe duality gap where it
+      stopped (an upper bound on the optimal value minus the value there; the Newton
+      polish that follows only moves closer to the optimum); `converged`: `gap ≤ rtol · value`.
     """
 
     state_cov: Float[Array, "n n"]
@@ -85,24 +86,23 @@ def _joint_objective(n):
 
 
 def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
-    """Frank–Wolfe with backtracking step sizes (algorithms.md §A.2), from the nominals."""
+    """Frank–Wolfe with backtracking step sizes (algorithms.md §A.2), from the nominals.
+
+    Returns the last iterate, the iteration count, the oracles' multipliers at that
+    iterate and its duality gap (each oracle is traced once, inside the loop).
+    """
     dtype = nominals[0].dtype
 
-    def step_data(s):
+    def cond(c):
+        return (~c[3]) & (c[1] < max_iter)
+
+    def body(c):
+        s, k, beta, _, _, _ = c
         value, grads = fg(s)
-        lmos = tuple(st.oracle(g, nom)[0] for st, g, nom in zip(sets, grads, nominals, strict=True))
+        lmos, mults = zip(*(st.oracle(g, nom) for st, g, nom in zip(sets, grads, nominals, strict=True)), strict=True)
         p = tuple(lm - si for lm, si in zip(lmos, s, strict=True))
         gap = sum(jnp.vdot(pi, gi) for pi, gi in zip(p, grads, strict=True))
         pn = sum(jnp.vdot(pi, pi) for pi in p)
-        return value, p, gap, pn
-
-    def cond(c):
-        _, k, _, done = c
-        return (~done) & (k < max_iter)
-
-    def body(c):
-        s, k, beta, _ = c
-        value, p, gap, pn = step_data(s)
         done = (gap <= rtol * jnp.abs(value)) | (pn == 0)
         beta = 0.5 * beta
         pn_safe = jnp.where(pn > 0, pn, 1.0)
@@ -121,11 +121,13 @@ def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
         beta, _, _ = lax.while_loop(bt_cond, bt_body, (beta, done, 0))
         eta = jnp.where(done, 0.0, jnp.minimum(gap / (beta * pn_safe), 1.0))
         s = tuple(linalg.symmetrize(si + eta * pi) for si, pi in zip(s, p, strict=True))
-        return s, k + jnp.where(done, 0, 1), beta, done
+        return s, k + jnp.where(done, 0, 1), beta, done, tuple(mults), jnp.maximum(gap, 0.0)
 
     beta0 = jnp.ones((), dtype) / sum(jnp.trace(nom) for nom in nominals)
-    s, k, _, _ = lax.while_loop(cond, body, (tuple(nominals), jnp.zeros((), int), beta0, jnp.zeros((), bool)))
-    return s, k
+    zero = jnp.zeros((), dtype)
+    init = (tuple(nominals), jnp.zeros((), int), beta0, jnp.zeros((), bool), tuple(zero for _ in nominals), zero)
+    s, k, _, _, mults, gap = lax.while_loop(cond, body, init)
+    return s, k, mults, gap
 
 
 def _dense_solve(g, y):
@@ -157,9 +159,7 @@ def _solve(make_fg: Callable, params, sets: tuple, nominals: tuple, rtol, max_it
         del guess
         p_, sets_, noms_ = jax.tree.map(lax.stop_gradient, (params, sets, nominals))
         fg = make_fg(*p_)
-        s, iters = _frank_wolfe(fg, sets_, noms_, rtol, max_iter)
-        _, grads = fg(s)
-        mult = tuple(st.oracle(g, nom)[1] for st, g, nom in zip(sets_, grads, noms_, strict=True))
+        s, iters, mult, gap = _frank_wolfe(fg, sets_, noms_, rtol, max_iter)
         res_fn = residual_of(fg, sets_, noms_)
         x = (s, mult)
 
@@ -174,9 +174,7 @@ def _solve(make_fg: Callable, params, sets: tuple, nominals: tuple, rtol, max_it
         s, mult = lax.fori_loop(0, _POLISH_STEPS, newton, x)
         # Zero-radius blocks are returned exactly (the polish may leave round-off there).
         s = tuple(jnp.where(st.is_nominal(), nom, linalg.symmetrize(si)) for st, si, nom in zip(sets_, s, noms_, strict=True))
-        value, grads = fg(s)
-        lmos = tuple(st.oracle(g, nom)[0] for st, g, nom in zip(sets_, grads, noms_, strict=True))
-        gap = jnp.maximum(sum(jnp.vdot(lm - si, g) for lm, si, g in zip(lmos, s, grads, strict=True)), 0.0)
+        value, _ = fg(s)
         converged = gap <= rtol * jnp.maximum(jnp.abs(value), jnp.finfo(value.dtype).tiny)
         # custom_root needs float auxiliary outputs (integer tangents are rejected).
         return (s, mult), (iters.astype(gap.dtype), gap, converged.astype(gap.dtype))
@@ -236,12 +234,19 @@ def worst_case(
     dtype = jnp.result_type(prior_cov, H, noise_cov)
     prior_cov, H, noise_cov = prior_cov.astype(dtype), H.astype(dtype), noise_cov.astype(dtype)
     i_min = as_float_array("i_min", i_min, (0,)).astype(dtype)
-    rtol = default_rtol(dtype) if rtol is None else rtol
+    rtol = default_rtol(dtype) if rtol is None else float(rtol)
+    return _worst_case(state_set, noise_set, prior_cov, H, noise_cov, i_min, rtol, int(max_iter))
+
+
+# Compiled once per set types, shapes and static options, so that eager calls (outside a
+# user's jit) do not re-trace the solver's loops each time.
+@eqx.filter_jit
+def _worst_case(state_set, noise_set, prior_cov, H, noise_cov, i_min, rtol, max_iter):
     sets, noms = (state_set, noise_set), (prior_cov, noise_cov)
     if all(isinstance(st, Moment) for st in sets):
         s = tuple(st.worst_case(nom) for st, nom in zip(sets, noms, strict=True))
         value, _ = _decoupled_objective(H, i_min)(s)
-        zero = jnp.zeros((), dtype)
+        zero = jnp.zeros((), prior_cov.dtype)
         return WorstCase(s[0], s[1], value, jnp.zeros((), int), zero, jnp.ones((), bool))
     s, value, iters, gap, conv = _solve(_decoupled_objective, (H, i_min), sets, noms, rtol, max_iter)
     return WorstCase(s[0], s[1], value, iters, gap, conv)
@@ -266,7 +271,12 @@ def worst_case_joint(
     d = cov.shape[0]
     if not isinstance(n, int) or not 1 <= n < d:
         raise ValueError(f"n must be an int with 1 <= n < {d} (the state dimension within cov), got {n!r}")
-    rtol = default_rtol(cov.dtype) if rtol is None else rtol
+    rtol = default_rtol(cov.dtype) if rtol is None else float(rtol)
+    return _worst_case_joint(joint_set, cov, n, rtol, int(max_iter))
+
+
+@eqx.filter_jit
+def _worst_case_joint(joint_set, cov, n, rtol, max_iter):
     if isinstance(joint_set, Moment):
         s = joint_set.worst_case(cov)
         value, _ = _joint_objective(n)((s,))
@@ -289,7 +299,8 @@ def wasserstein_mmse(
     """Decoupled Wasserstein DR-MMSE problem (Wang & Ye 2022, eqs. 32–35; Jang et al.
     2025, eq. 5): separate `W₂` balls of radii `theta_x` around `prior_cov` and
     `theta_v` around `noise_cov`. See `worst_case`."""
-    return worst_case(Wasserstein(theta_x), Wasserstein(theta_v), prior_cov, H, noise_cov, i_min=i_min, rtol=rtol, max_iter=max_iter)
+    sets = Wasserstein(radius("theta_x", theta_x)), Wasserstein(radius("theta_v", theta_v))
+    return worst_case(*sets, prior_cov, H, noise_cov, i_min=i_min, rtol=rtol, max_iter=max_iter)
 
 
 def wasserstein_mmse_joint(
@@ -298,4 +309,4 @@ def wasserstein_mmse_joint(
     """Joint Wasserstein DR-MMSE problem: one `W₂` ball of radius `rho` around the
     covariance `cov` of `(x, y)` (Shafieezadeh-Abadeh et al. 2018; Theorem 8 of
     Wang & Ye 2022). See `worst_case_joint`."""
-    return worst_case_joint(Wasserstein(rho), cov, n, rtol=rtol, max_iter=max_iter)
+    return worst_case_joint(Wasserstein(radius("rho", rho)), cov, n, rtol=rtol, max_iter=max_iter)

@@ -1,0 +1,19 @@
+"""Ambiguity sets, outlier models and their worst-case solvers."""
+
+from ._base import AbstractAmbiguitySet as AbstractAmbiguitySet
+from ._divergence import KL as KL
+from ._moment import Moment as Moment
+from ._outliers import (
+    AbstractOutlierModel as AbstractOutlierModel,
+    EpsContamination as EpsContamination,
+    EpsNormal as EpsNormal,
+)
+from ._solve import (
+    JointWorstCase as JointWorstCase,
+    WorstCase as WorstCase,
+    wasserstein_mmse as wasserstein_mmse,
+    wasserstein_mmse_joint as wasserstein_mmse_joint,
+    worst_case as worst_case,
+    worst_case_joint as worst_case_joint,
+)
+from ._wasserstein import Wasserstein as Wasserstein
