@@ -9,15 +9,14 @@ import numpy as np
 from .experiments import Report
 
 
-def _pyplot():
+def _figure(**kwargs):
+    """A matplotlib `Figure` that is not registered with pyplot: no backend is chosen
+    and no global state changes, so saving works headless and notebooks keep inline plots."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
     except ImportError as e:  # pragma: no cover - depends on the environment
         raise ImportError("plotting needs matplotlib: pip install 'jdrkf[notebooks]'") from e
-    return plt
+    return Figure(**kwargs)
 
 
 def moving_average(x: np.ndarray, window: int) -> np.ndarray:
@@ -28,12 +27,11 @@ def moving_average(x: np.ndarray, window: int) -> np.ndarray:
     return (c[idx] - c[lo]) / (idx - lo)
 
 
-def _save(fig, plt, path):
+def _save(fig, path):
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
     return path
 
 
@@ -44,8 +42,8 @@ def plot_sweeps(report: Report, path: str | pathlib.Path) -> pathlib.Path:
         raise ValueError("the report has no parameter sweeps")
     from . import metrics
 
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, len(report.sweeps), figsize=(6 * len(report.sweeps), 4), squeeze=False)
+    fig = _figure(figsize=(6 * len(report.sweeps), 4))
+    axes = fig.subplots(1, len(report.sweeps), squeeze=False)
     for ax, (title, sw) in zip(axes[0], report.sweeps.items(), strict=True):
         for name, vals in sw.values.items():
             stats = [metrics.mean_ci(vals[:, j]) for j in range(len(sw.x))]
@@ -59,7 +57,7 @@ def plot_sweeps(report: Report, path: str | pathlib.Path) -> pathlib.Path:
         ax.set_title(title + (" (x: paper)" if sw.paper else ""))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    return _save(fig, plt, path)
+    return _save(fig, path)
 
 
 def plot_error_curves(report: Report, path: str | pathlib.Path, window: int = 50) -> pathlib.Path:
@@ -67,8 +65,8 @@ def plot_error_curves(report: Report, path: str | pathlib.Path, window: int = 50
     line per filter (the style of Wang & Ye 2022, Figs. 1–2). Returns the file path."""
     if not report.curves:
         raise ValueError("the report has no per-step curves; run the experiment with curves=True")
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = _figure(figsize=(7, 4))
+    ax = fig.subplots()
     for name, curve in report.curves.items():
         ax.plot(np.arange(1, len(curve) + 1), 10 * np.log10(moving_average(curve, window)), label=name)
     ax.set_xlabel("time step k")
@@ -76,4 +74,4 @@ def plot_error_curves(report: Report, path: str | pathlib.Path, window: int = 50
     ax.set_title(report.experiment)
     ax.legend()
     ax.grid(alpha=0.3)
-    return _save(fig, plt, path)
+    return _save(fig, path)

@@ -60,6 +60,15 @@ class Report:
                 for r in self.rows
             ],
             "notes": self.notes,
+            "sweeps": {
+                name: {
+                    "x_label": sw.x_label,
+                    "x": np.asarray(sw.x).tolist(),
+                    "values": {f: np.asarray(v).tolist() for f, v in sw.values.items()},
+                    "paper": {f: [None if np.isnan(p) else float(p) for p in np.asarray(v, float)] for f, v in sw.paper.items()},
+                }
+                for name, sw in self.sweeps.items()
+            },
         }
 
     def ranking_agrees(self, metric: str) -> bool | None:
