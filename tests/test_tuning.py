@@ -26,6 +26,7 @@ CASES = {
     "wasserstein-theta_v": (lambda x: jdrkf.DRKF(state_set=Wasserstein(0.2), noise_set=Wasserstein(x), outliers=EpsContamination(0.05)), 0.1),
     "eps": (lambda x: jdrkf.DRKF(state_set=Moment(1.02), noise_set=Moment(1.02), outliers=EpsContamination(x)), 0.05),
     "wkf-rho": (lambda x: jdrkf.WassersteinKF(x), 0.1),
+    "huber-k": (lambda x: jdrkf.HuberKF(0.05, x), 1.4),
 }
 
 

@@ -18,9 +18,6 @@ from ._base import AbstractAmbiguitySet, radius
 from ._moment import Moment
 from ._wasserstein import Wasserstein
 
-_POLISH_STEPS = 2
-
-
 class WorstCase(eqx.Module):
     """Solution of the decoupled problem (Wang & Ye 2022, eqs. 32–35 and 36–37).
 
@@ -141,7 +138,7 @@ def _solve(make_fg: Callable, params, sets: tuple, nominals: tuple, rtol, max_it
 
     The optimum is the fixed point `Σ = LMO(∇f(Σ))` of each block (algorithms.md §A.3),
     written as the smooth system `set.residual(Σ, multiplier, ∇f(Σ), nominal) = 0`.
-    Forward: Frank–Wolfe to a relative gap `rtol`, then Newton steps on that system
+    Forward: Frank–Wolfe to a relative gap `rtol`, then a Newton step on that system
     (quadratic convergence, so derivatives see a tight solution). Derivatives: the
     implicit function theorem on the same system (`lax.custom_root`).
     """
@@ -163,7 +160,7 @@ def _solve(make_fg: Callable, params, sets: tuple, nominals: tuple, rtol, max_it
         res_fn = residual_of(fg, sets_, noms_)
         x = (s, mult)
 
-        def newton(_, x):
+        def newton(x):
             r = res_fn(x)
             dx = _dense_solve(lambda v: jax.jvp(res_fn, (x,), (v,))[1], r)
             x_new = jax.tree.map(lambda a, b: a - b, x, dx)
@@ -171,7 +168,7 @@ def _solve(make_fg: Callable, params, sets: tuple, nominals: tuple, rtol, max_it
             better = jnp.all(jnp.isfinite(better)) & (jnp.linalg.norm(better) < jnp.linalg.norm(ravel_pytree(r)[0]))
             return jax.tree.map(lambda a, b: jnp.where(better, a, b), x_new, x)
 
-        s, mult = lax.fori_loop(0, _POLISH_STEPS, newton, x)
+        s, mult = newton(x)  # from a gap of rtol = eps^(2/3), one step reaches round-off
         # Zero-radius blocks are returned exactly (the polish may leave round-off there).
         s = tuple(jnp.where(st.is_nominal(), nom, linalg.symmetrize(si)) for st, si, nom in zip(sets_, s, noms_, strict=True))
         value, _ = fg(s)
@@ -218,7 +215,7 @@ def worst_case(
     `Σv ∈ noise_set(noise_cov)` (Wang & Ye 2022, eq. 32 with eq. 33, 37 or the KL balls
     18/21; `None` = the nominal only). Moment sets are closed form (Theorem 5); otherwise
     Frank–Wolfe with backtracking on the product of the sets, with the linear oracle of
-    each set in closed form (algorithms.md §A.1–A.2, §B.3), polished by Newton steps on
+    each set in closed form (algorithms.md §A.1–A.2, §B.3), polished by a Newton step on
     the optimality system, which also gives the derivatives (implicit function theorem)
     with respect to radii, `prior_cov`, `H`, `noise_cov` and `i_min`.
     """
