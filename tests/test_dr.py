@@ -225,3 +225,13 @@ def test_covariances_stay_psd(seed, theta_x, theta_v):
     # The worst-case prior keeps the nominal's smallest eigenvalue (T ⪰ I, algorithms.md §A.1).
     lo = np.linalg.eigvalsh(res.info["nominal_prior_cov"])[:, 0]
     assert np.all(np.linalg.eigvalsh(res.predicted_covariances)[:, 0] >= lo * (1 - 1e-9))
+
+
+def test_float32_matches_float64(getkey):
+    model, prior, traj = _data(getkey, steps=30)
+    flt = jdrkf.DRKF(state_set=Wasserstein(0.2), noise_set=Wasserstein(0.1), outliers=EpsContamination(0.05))
+    ref = run(flt, model, prior, traj.observations[0])
+    f32 = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, tree)  # noqa: E731
+    res = run(f32(flt), f32(model), f32(prior), traj.observations[0].astype(jnp.float32))
+    assert res.filtered_means.dtype == jnp.float32 and res.result == jdrkf.RESULTS.successful
+    np.testing.assert_allclose(res.filtered_means, ref.filtered_means, rtol=1e-3, atol=1e-3 * np.abs(ref.filtered_means).max())
