@@ -15,3 +15,12 @@ from ._kalman import (
 )
 from ._dr import DRKF as DRKF, HuberKF as HuberKF, WassersteinKF as WassersteinKF
 from ._divergence import RiskSensitiveKF as RiskSensitiveKF, TauKF as TauKF
+from ._reweighted import (
+    IRLSResult as IRLSResult,
+    RBKF as RBKF,
+    STKF as STKF,
+    STKF_AR1 as STKF_AR1,
+    STKF_AR2 as STKF_AR2,
+    VBKF as VBKF,
+    irls_update as irls_update,
+)

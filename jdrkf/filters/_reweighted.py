@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import Literal
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax.numpy as jnp
 from jax import lax
 from jax.scipy.linalg import solve_triangular
@@ -98,10 +99,12 @@ def irls_update(
     `resid = y − μ_v` (masked rows zero). `weight_x`, `weight_y` map whitened
     residuals to weights (`None`: weight 1, and `P̃ = P⁻` / `R̃ = R` exactly). From
     `x₀ = x̂⁻`, iteration `j` evaluates the weights at `x_{j−1}` and updates `x_j`; it
-    stops when `‖x_j − x_{j−1}‖ ≤ tol ‖x_j‖` or after `max_iter` iterations (a capped
-    `lax.while_loop`, forward-mode differentiable only). `fixed_iterations=True` runs
-    exactly `max_iter` iterations in a `lax.fori_loop`, which reverse mode
-    differentiates (gradients of the truncated iteration).
+    stops when `‖x_j − x_{j−1}‖ ≤ tol ‖x_j‖` or after `max_iter` iterations (a while
+    loop bounded by `max_iter`, `equinox.internal.while_loop(kind="bounded")`, which
+    both forward and reverse mode differentiate: the derivative of the early-stopped
+    iterate, exact where the iteration count is locally constant).
+    `fixed_iterations=True` runs exactly `max_iter` iterations (`lax.fori_loop`), so
+    the output is smooth in the hyper-parameters (no jumps when the count changes).
 
     Posterior covariance (line 18, Joseph form with the final gain `K̃`):
     `"reweighted"` uses the reweighted `P̃`, `R̃`, i.e. `(I − K̃H)P̃(I − K̃H)ᵀ + K̃R̃K̃ᵀ`
@@ -154,7 +157,7 @@ def irls_update(
             moved = jnp.linalg.norm(x - x_old) > tol * jnp.linalg.norm(x)
             return (j == 0) | ((j < max_iter) & moved)
 
-        iterations, x, _, w_x, w_y = lax.while_loop(cond, body, init)
+        iterations, x, _, w_x, w_y = eqxi.while_loop(cond, body, init, max_steps=max_iter, kind="bounded")
     x, gain, p_t, r_t, chol_s = solve(w_x, w_y)
     a = jnp.eye(n, dtype=dtype) - gain @ h
     if covariance == "reweighted":
@@ -230,9 +233,10 @@ class _IRLSFilter(AbstractFilter):
 _COMMON_ARGS = """
     - `max_iter`, `tol`: iteration cap `m_iter` and relative-change threshold `ε` of
       Algorithm 1 line 10 (`‖x_j − x_{j−1}‖ ≤ ε‖x_j‖` stops; at least one iteration).
-    - `fixed_iterations`: run exactly `max_iter` iterations (`lax.fori_loop`) so that
-      reverse-mode gradients (`jax.grad`) w.r.t. the hyper-parameters exist; the
-      default capped `lax.while_loop` supports forward mode only.
+    - `fixed_iterations`: run exactly `max_iter` iterations (`lax.fori_loop`), which
+      makes the output smooth in the hyper-parameters. Both modes support `jax.grad`
+      and `jax.jvp` (the default early-stopped loop is bounded by `max_iter`; its
+      derivative is that of the iterate actually computed).
     - `covariance`: posterior covariance of line 18, `"reweighted"` (default;
       `(I − K̃H)P̃(I − K̃H)ᵀ + K̃R̃K̃ᵀ`, the weighted-least-squares / VB covariance that
       makes Theorem 4 and Proposition 2 exact) or `"nominal"` (`P⁻` and `R` in place of
@@ -327,6 +331,14 @@ class STKF(_IRLSFilter):
     `STKF.m` caps at 2 iterations). With all `ν = inf` and `τ² = 1` it is the
     Kalman filter (Proposition 1). With `nu_x=None`, `tol=0` and `max_iter=N` it
     equals `VBKF.student_t_equivalent(nu_y, tau2_y, N)` exactly (Theorem 4).
+
+    **Example:**
+
+    ```python
+    stkf = STKF(nu_y=4.0)                                  # Example 1 of the paper
+    res = stkf(model, prior, ys); res.info["iterations"]   # (T,) iterations per step
+    g = jax.grad(lambda nu: loss(STKF(nu_y=nu)(model, prior, ys)))(4.0)
+    ```
     """
     )
 
@@ -399,6 +411,9 @@ class STKF_AR1(AbstractFilter):
     `ν`, `τ²` and forgetting factors `ρ ∈ (0, 1]`; `nu = inf` disables a channel.
     `max_iter`, `tol`, `fixed_iterations`, `covariance`, `throw`, `nan_as_missing`:
     as in `STKF` (defaults: the authors' `student_forward_adap`, 4 iterations, 1e-5).
+    `gate` (static, optional): the authors' `student_forward_adap_y2` outlier gate, not
+    in the paper: the measurement channels' `τ²` update is skipped (`τ²` kept) at
+    steps with `‖e_y‖² > gate` (they use 40), `e_y` the whitened posterior residual.
 
     Proposition 2: all `ρ = 1` gives the STKF. With process `ν = inf`, `ρ_x = 1`,
     measurement `ρ_y = ρ_c` and `ν_y = 1/(1 − ρ_c)` (the fixed point of eq. 43),
@@ -418,6 +433,7 @@ class STKF_AR1(AbstractFilter):
     rho_y: Float[Array, "*m"]
     eta: Float[Array, "*d"] | None
     xi: Float[Array, "*d"] | None
+    gate: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     tol: float = eqx.field(static=True)
     fixed_iterations: bool = eqx.field(static=True)
@@ -436,6 +452,7 @@ class STKF_AR1(AbstractFilter):
         *,
         eta: Float[ArrayLike, "*d"] | None = None,
         xi: Float[ArrayLike, "*d"] | None = None,
+        gate: float | None = None,
         max_iter: int = 4,
         tol: float = 1e-5,
         fixed_iterations: bool = False,
@@ -453,6 +470,9 @@ class STKF_AR1(AbstractFilter):
             raise ValueError("give eta or xi, not both")
         self.eta = None if eta is None else channel_param("eta", eta)
         self.xi = None if xi is None else channel_param("xi", xi, lower_open=False, allow_inf=True)
+        if gate is not None and (not isinstance(gate, int | float) or not gate > 0):
+            raise ValueError(f"gate must be a number > 0 or None, got {gate!r}")
+        self.gate = None if gate is None else float(gate)
         _check_static(max_iter, tol, covariance)
         self.max_iter, self.tol, self.fixed_iterations, self.covariance = max_iter, float(tol), fixed_iterations, covariance
         self.throw, self.nan_as_missing = throw, nan_as_missing
@@ -505,6 +525,9 @@ class STKF_AR1(AbstractFilter):
             else:
                 xi = jnp.where(finite, self.eta * jnp.sqrt(2.0 * nu_s**2 / (nu_s + 1.0) ** 3) * tau2_minus, 0.0)
             tau2 = jnp.where(adaptive & (jnp.abs(tau2_plus - tau2_minus) > xi), tau2_prev, tau2)
+        if self.gate is not None:
+            gated = jnp.sum(sol.e_y**2) > self.gate
+            tau2 = jnp.where(jnp.concatenate([jnp.zeros(n, bool), jnp.full(m, gated)]), tau2_prev, tau2)
         keep = jnp.concatenate([jnp.ones(n, bool), observed])
         nu, tau2 = jnp.where(keep, nu, nu_prev), jnp.where(keep, tau2, tau2_prev)
         info = {"iterations": sol.iterations, "weights_x": sol.weights_x, "weights_y": sol.weights_y, "nu": nu, "tau2": tau2}
@@ -540,6 +563,8 @@ class VBKF(AbstractFilter):
     `β⁻ = beta0` every step), `α = α⁻ + shape_increment`; then `num_iter` times:
     `λ = β/α`, Kalman update with `R_k` (Joseph form), `β = β⁻ + ½e_y² + ½ diag(W P Wᵀ)`
     with `e_y = L_R⁻¹(y − Hx)`, `W = L_R⁻¹H`. The prior covariance is not adapted.
+    (`λ` scales the nominal `R`; for a diagonal `R`, the authors' absolute-variance
+    version `R_k = diag(λ_abs)` with `(α₀, β₀)` is `beta0 = β₀ / R_ii` here.)
 
     **Arguments:**
 
@@ -562,6 +587,13 @@ class VBKF(AbstractFilter):
     uses `start="scale"` and the covariance term, so it is only close to STKF.
 
     `info`: `lam` (`β/α` after the step), `alpha`, `beta`.
+
+    **Example:**
+
+    ```python
+    vbkf = VBKF(alpha0=50.0, beta0=50.0, rho=0.99)         # Example 1, Case 2
+    vbkf(model, prior, ys).info["lam"]                     # (T, m) scale of R per step
+    ```
     """
 
     alpha0: Float[Array, "*m"]

@@ -17,3 +17,11 @@ from ._solve import (
     worst_case_joint as worst_case_joint,
 )
 from ._wasserstein import Wasserstein as Wasserstein
+from ._weights import (
+    AbstractWeight as AbstractWeight,
+    Barron as Barron,
+    GaussianKernel as GaussianKernel,
+    Huber as Huber,
+    PseudoHuber as PseudoHuber,
+    StudentT as StudentT,
+)
