@@ -15,16 +15,7 @@ from ..sets._outliers import AbstractOutlierModel, EpsContamination
 from ..sets._solve import worst_case, worst_case_joint
 from ..sets._wasserstein import Wasserstein
 from ._base import RESULTS, AbstractFilter, StepOutput
-from ._kalman import _gaussian_loglik, _masked_measurement, _step_result, predict
-
-
-def _measurement(model, y, t, nan_as_missing):
-    mdl = model.at(t)
-    if nan_as_missing:
-        observed, h, r, resid = _masked_measurement(mdl, y)
-    else:
-        observed, h, r, resid = jnp.ones(y.shape, bool), mdl.H, mdl.R, y - mdl.noise_mean
-    return h, r, resid, jnp.sum(observed.astype(resid.dtype))
+from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
 
 def _result(failed, sol, filt):
@@ -36,7 +27,8 @@ def _decoupled_step(flt, model, state, y, t, u, state_set, noise_set, outliers):
     """Algorithm 1 / Theorem 9: nominal prediction (eqs. 46–47), worst-case covariances
     (eq. 34 or 36), robust update (eqs. 48–49)."""
     pred = predict(model, state, t, u)
-    h, r, resid, num_obs = _measurement(model, y, t, flt.nan_as_missing)
+    observed, h, r, resid = _measurement(model, y, t, flt.nan_as_missing)
+    num_obs = jnp.sum(observed.astype(resid.dtype))
     dtype = pred.cov.dtype
     i_min = jnp.ones((), dtype) if outliers is None else outliers.i_min().astype(dtype)
     sol = worst_case(state_set, noise_set, pred.cov, h, r, i_min=i_min, rtol=flt.rtol, max_iter=flt.max_iter)
@@ -70,7 +62,8 @@ def _joint_step(flt, model, state, y, t, u, joint_set):
     """Theorem 8: one ambiguity set on the covariance of `(x_k, y_k)`; the estimate is
     the conditional mean under the worst-case joint Gaussian."""
     pred = predict(model, state, t, u)
-    h, r, resid, num_obs = _measurement(model, y, t, flt.nan_as_missing)
+    observed, h, r, resid = _measurement(model, y, t, flt.nan_as_missing)
+    num_obs = jnp.sum(observed.astype(resid.dtype))
     n = pred.cov.shape[0]
     cross = pred.cov @ h.T
     joint = jnp.block([[pred.cov, cross], [cross.T, h @ cross + r]])

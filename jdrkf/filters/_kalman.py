@@ -37,6 +37,14 @@ def _masked_measurement(mdl: LinearModel, y: Float[Array, " m"]):
     return observed, h, r, resid
 
 
+def _measurement(model: LinearModel, y: Float[Array, " m"], t, nan_as_missing: bool):
+    """`(observed, H, R, y − μ_v)` of step `t`, with missing rows decoupled when `nan_as_missing`."""
+    mdl = model.at(t)
+    if nan_as_missing:
+        return _masked_measurement(mdl, y)
+    return jnp.ones(y.shape, bool), mdl.H, mdl.R, y - mdl.noise_mean
+
+
 def _gaussian_loglik(chol_s, innov, num_observed):
     z = linalg.cho_solve(chol_s, innov)
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_s)))
@@ -58,18 +66,14 @@ def update(
     increment `log N(y_k; H m⁻ + μ_v, H P⁻ Hᵀ + R)` over the observed components,
     and a flag that is `True` when the innovation covariance was not positive definite.
     """
-    mdl = model.at(t)
-    if nan_as_missing:
-        observed, h, r, resid = _masked_measurement(mdl, y)
-    else:
-        observed, h, r, resid = jnp.ones(y.shape, bool), mdl.H, mdl.R, y - mdl.noise_mean
+    observed, h, r, resid = _measurement(model, y, t, nan_as_missing)
     innov = resid - h @ predicted.mean
     s = linalg.symmetrize(h @ predicted.cov @ h.T + r)
     chol_s = linalg.cholesky(s)
     failed = ~jnp.all(jnp.isfinite(chol_s))
     gain = linalg.cho_solve(chol_s, h @ predicted.cov).T
     mean = predicted.mean + gain @ innov
-    a = jnp.eye(mdl.state_dim, dtype=s.dtype) - gain @ h
+    a = jnp.eye(predicted.mean.shape[0], dtype=s.dtype) - gain @ h
     cov = linalg.symmetrize(a @ predicted.cov @ a.T + gain @ r @ gain.T)
     loglik = _gaussian_loglik(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
     return Gaussian(mean, cov), loglik, failed

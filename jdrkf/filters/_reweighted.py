@@ -28,21 +28,12 @@ from .. import linalg
 from .._gaussian import Gaussian
 from ..sets._weights import AbstractWeight, channel_param, student_t_weight
 from ._base import AbstractFilter, StepOutput
-from ._kalman import _gaussian_loglik, _masked_measurement, _step_result, predict
+from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
 __all__ = ["RBKF", "STKF", "STKF_AR1", "STKF_AR2", "VBKF", "IRLSResult", "irls_update"]
 
 Covariance = Literal["reweighted", "nominal"]
 WeightFn = Callable[[Float[Array, " d"]], Float[Array, " d"]]
-
-
-def _measurement(model, y, t, nan_as_missing):
-    mdl = model.at(t)
-    if nan_as_missing:
-        observed, h, r, resid = _masked_measurement(mdl, y)
-    else:
-        observed, h, r, resid = jnp.ones(y.shape, bool), mdl.H, mdl.R, y - mdl.noise_mean
-    return observed, h, r, resid
 
 
 def _inflate(chol, w):
