@@ -1,3 +1,5 @@
+import gc
+
 import jax
 import numpy as np
 import pytest
@@ -17,3 +19,13 @@ def getkey():
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _fresh_compilation_caches():
+    """Drop compiled executables after each test module. The full suite compiles
+    hundreds of programs in one process; keeping them all made XLA's CPU compiler
+    crash late in the run (seen twice in tests/test_tuning.py, never when run alone)."""
+    yield
+    jax.clear_caches()
+    gc.collect()
