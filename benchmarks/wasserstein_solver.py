@@ -55,8 +55,8 @@ for batch chunks queued on the same, exhausted pool (native stacks taken with gd
 seen with CPU async dispatch on and off). So every size, the filter and the profile
 run in a child process (one per size and problem); a faulthandler watchdog aborts a
 child whose phase exceeds `--watchdog-s`, whose first (compiling) call exceeds
-`--watchdog-first-call-s`, or whose timed call takes 20× longer than the previous one
-(≥ 30 s), and the parent re-runs that cell (`--retries`). Hangs are counted.
+`--watchdog-first-call-s`, or whose timed call takes 5× longer than the previous one
+(≥ 20 s), and the parent re-runs that cell (`--retries`). Hangs are counted.
 
 CPU async dispatch stays on (JAX's default); `--sync-dispatch` turns it off. The
 profile also times the n = 2 single solve in a child with the other setting.
@@ -189,7 +189,7 @@ class Watchdog:
     batched LAPACK kernels can deadlock XLA's CPU thread pool (see the module docstring);
     the parent process then re-runs the cell."""
 
-    def __init__(self, seconds: float, call_floor: float = 30.0, first_call: float = 90.0):
+    def __init__(self, seconds: float, call_floor: float = 20.0, first_call: float = 45.0):
         self.seconds, self.call_floor, self.first_call = seconds, call_floor, first_call
 
     def arm(self, phase: str | None = None, seconds: float | None = None):
@@ -201,7 +201,7 @@ class Watchdog:
     def call(self, typical_s: float | None):
         """Arm for one call expected to take about `typical_s` (None: a first call, which
         compiles: `first_call` seconds)."""
-        self.arm(seconds=self.first_call if typical_s is None else max(self.call_floor, 20.0 * typical_s))
+        self.arm(seconds=self.first_call if typical_s is None else max(self.call_floor, 5.0 * typical_s))
 
     def disarm(self):
         faulthandler.cancel_dump_traceback_later()
@@ -671,10 +671,12 @@ def bench_filter(args, jax, jnp, wd):
     for name, (cm, cP) in ref.items():
         res[name]["max_abs_diff_means_vs_jdrkf"] = float(np.max(np.abs(f64(r1.filtered_means[:k]) - cm)))
         res[name]["max_abs_diff_covs_vs_jdrkf"] = float(np.max(np.abs(f64(r1.filtered_covariances[:k]) - cP)))
-    res["max_abs_mean"] = float(np.max(np.abs(ref["numpy_fw"][0])))
+    res["max_abs_mean"] = scale = float(np.max(np.abs(ref["numpy_fw"][0])))
+    for name in ref:  # relative to the largest |mean| of the run (the means drift to ~50 here)
+        res[name]["max_rel_diff_means_vs_jdrkf"] = res[name]["max_abs_diff_means_vs_jdrkf"] / max(scale, 1.0)
     res["mean_check_tol"] = 1e-6 if dtype == "float64" else 1e-3
-    res["mean_check_ok"] = res["numpy_fw"]["max_abs_diff_means_vs_jdrkf"] <= res["mean_check_tol"]
-    res["mean_check_cvxpy_ok"] = all(res[x]["max_abs_diff_means_vs_jdrkf"] <= res["mean_check_tol"] for x in ("cvxpy_tight", "cvxpy_default"))
+    res["mean_check_ok"] = res["numpy_fw"]["max_rel_diff_means_vs_jdrkf"] <= res["mean_check_tol"]
+    res["mean_check_cvxpy_ok"] = all(res[x]["max_rel_diff_means_vs_jdrkf"] <= res["mean_check_tol"] for x in ("cvxpy_tight", "cvxpy_default"))
     res["one_run_all_successful"] = bool(np.all(np.asarray(r1.result == jdrkf.RESULTS.successful)))
 
     # -- jdrkf, vmapped over runs (per-run solver, the library as it is)
@@ -964,11 +966,13 @@ def build_markdown(r) -> str:
              f"{f['shared_compile_s']:.1f} | {f['shared_s']:.3f} | {f['shared_steps_per_s']:.3g} | "
              f"{f['shared_s'] / (f['runs'] * f['T']) * 1e6:.3f} | {f['ratio_shared_vs_cvxpy']:.3g} | {f['max_abs_diff_shared_vs_one_run']:.1e} |"),
             "",
-            (f"- Filtered means on run 0 (first {f['cvxpy_steps']} steps; means up to {f['max_abs_mean']:.1f} in size): jdrkf vs the "
-             f"certified NumPy filter {f['numpy_fw']['max_abs_diff_means_vs_jdrkf']:.1e} (tolerance {f['mean_check_tol']:g}: "
-             f"{'ok' if f['mean_check_ok'] else 'NOT met'}); jdrkf vs the cvxpy-DPP filters "
-             f"{f['cvxpy_tight']['max_abs_diff_means_vs_jdrkf']:.1e} (tight) and {f['cvxpy_default']['max_abs_diff_means_vs_jdrkf']:.1e} "
-             f"(default tolerances){'' if f['mean_check_cvxpy_ok'] else ': beyond the tolerance, because Clarabel returns the worst-case covariances (primal matrices) to ~1e-5 only, although its optimal values are accurate to ~1e-9'}."),
+            (f"- Filtered means on run 0 (first {f['cvxpy_steps']} steps; means up to {f['max_abs_mean']:.1f} in size), max abs "
+             f"difference relative to the largest |mean|: jdrkf vs the certified NumPy filter "
+             f"{f['numpy_fw']['max_rel_diff_means_vs_jdrkf']:.1e} (tolerance {f['mean_check_tol']:g}: "
+             f"{'ok' if f['mean_check_ok'] else 'NOT met'}; the NumPy worst case is certified in value to 1e-14, so its matrices "
+             f"only to ~1e-7); jdrkf vs the cvxpy-DPP filters {f['cvxpy_tight']['max_rel_diff_means_vs_jdrkf']:.1e} (tight) and "
+             f"{f['cvxpy_default']['max_rel_diff_means_vs_jdrkf']:.1e} (default tolerances)"
+             f"{'' if f['mean_check_cvxpy_ok'] else ': beyond the tolerance, because Clarabel returns the worst-case covariances (primal matrices) to ~1e-5 only, although its optimal values are accurate to ~1e-9'}."),
             (f"- cvxpy steps that needed a looser tolerance or ended inaccurate: {f['cvxpy_tight']['fallback_or_inaccurate_steps']} (tight), "
              f"{f['cvxpy_default']['fallback_or_inaccurate_steps']} (default). Clarabel's own time per step: "
              f"{fmt(f['cvxpy_tight']['clarabel_ms_per_step'], '.2f')} ms (tight), {fmt(f['cvxpy_default']['clarabel_ms_per_step'], '.2f')} ms (default); "
@@ -1163,8 +1167,8 @@ def main(argv=None) -> int:
     p.add_argument("--profile-calls", type=int, default=200, help="calls per profile row (median)")
     p.add_argument("--sync-dispatch", action="store_true", help="turn JAX's CPU async dispatch off (default: on, JAX's default)")
     p.add_argument("--watchdog-s", type=float, default=300.0,
-                   help="a child aborts when a phase runs longer than this, or a timed call 20x longer than the previous (>= 30 s)")
-    p.add_argument("--watchdog-first-call-s", type=float, default=90.0, help="limit for a first (compiling) call")
+                   help="a child aborts when a phase runs longer than this, or a timed call 5x longer than the previous (>= 20 s)")
+    p.add_argument("--watchdog-first-call-s", type=float, default=45.0, help="limit for a first (compiling) call")
     p.add_argument("--retries", type=int, default=1, help="re-runs of a cell whose child hung")
     p.add_argument("--out", default=os.path.join(HERE, "results"), help="output directory")
     p.add_argument("--tag", default=None, help="output file stem suffix (default 'cpu'; '_quick', '_float32' appended)")
