@@ -5,6 +5,8 @@ import importlib.metadata
 from . import linalg as linalg, metrics as metrics, sets as sets, tuning as tuning
 from ._gaussian import Gaussian as Gaussian
 from ._models import LinearModel as LinearModel
+from ._em import EMResult as EMResult, em_noise_covariances as em_noise_covariances
+from ._closed_loop import ClosedLoopResult as ClosedLoopResult, LQRController as LQRController, closed_loop as closed_loop
 from ._montecarlo import Clairvoyant as Clairvoyant, montecarlo as montecarlo
 from ._noise import (
     AbstractNoise as AbstractNoise,
@@ -19,6 +21,8 @@ from ._noise import (
 from ._simulate import Trajectories as Trajectories, simulate as simulate
 from .filters import (
     AbstractFilter as AbstractFilter,
+    BCOTKF as BCOTKF,
+    CovarianceRecursion as CovarianceRecursion,
     DRKF as DRKF,
     FilterResult as FilterResult,
     HuberKF as HuberKF,
@@ -29,14 +33,19 @@ from .filters import (
     STKF as STKF,
     STKF_AR1 as STKF_AR1,
     STKF_AR2 as STKF_AR2,
+    SteadyStateDR as SteadyStateDR,
+    SteadyStateDRKF as SteadyStateDRKF,
     SteadyStateGain as SteadyStateGain,
     SteadyStateKalmanFilter as SteadyStateKalmanFilter,
     StepOutput as StepOutput,
     TauKF as TauKF,
+    ThetaMax as ThetaMax,
     VBKF as VBKF,
+    WassersteinDRKF as WassersteinDRKF,
     WassersteinKF as WassersteinKF,
     irls_update as irls_update,
     predict as predict,
+    theta_max as theta_max,
     update as update,
 )
 

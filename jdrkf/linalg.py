@@ -12,6 +12,9 @@ Every function works on float32 and float64 inputs and is safe under `jax.jit`,
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -27,6 +30,7 @@ __all__ = [
     "bures_distance",
     "bures_distance_squared",
     "solve_dare",
+    "lapack_only",
 ]
 
 
@@ -41,6 +45,23 @@ def symmetrize(a: Float[ArrayLike, "... n n"]) -> Float[Array, "... n n"]:
 # the Kalman step; unrolled code vectorizes across the batch instead (3x faster at
 # n = 1, see benchmarks/kf_throughput.py). The arithmetic is the same algorithm.
 UNROLL_MAX = 6
+_UNROLL = contextvars.ContextVar("jdrkf_unroll", default=True)
+
+
+@contextlib.contextmanager
+def lapack_only():
+    """Within this context (at trace time), `cholesky` and `cho_solve` call LAPACK for
+    every size. Solvers with large one-off graphs (Newton on a dense Jacobian) use it:
+    unrolled code multiplies their compile time, and they are not vmapped over runs."""
+    token = _UNROLL.set(False)
+    try:
+        yield
+    finally:
+        _UNROLL.reset(token)
+
+
+def _unroll(n: int) -> bool:
+    return n <= UNROLL_MAX and _UNROLL.get()
 
 
 def _unrolled_cholesky(a):
@@ -65,7 +86,7 @@ def cholesky(a: Float[ArrayLike, "n n"]) -> Float[Array, "n n"]:
     unrolled elementwise code, which is much faster under `vmap`.
     """
     a = jnp.asarray(a)
-    return _unrolled_cholesky(a) if a.shape[-1] <= UNROLL_MAX else jnp.linalg.cholesky(a)
+    return _unrolled_cholesky(a) if _unroll(a.shape[-1]) else jnp.linalg.cholesky(a)
 
 
 def _unrolled_cho_solve(chol, b):
@@ -82,7 +103,7 @@ def _unrolled_cho_solve(chol, b):
 def cho_solve(chol: Float[Array, "n n"], b: Float[ArrayLike, "n ..."]) -> Float[Array, "n ..."]:
     """Solve `(L Lᵀ) x = b` given the lower Cholesky factor `L`."""
     b = jnp.asarray(b)
-    if chol.shape[-1] <= UNROLL_MAX:
+    if _unroll(chol.shape[-1]):
         return _unrolled_cho_solve(chol, b)
     vec = b.ndim == 1
     b2 = b[:, None] if vec else b

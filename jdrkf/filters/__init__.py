@@ -24,3 +24,11 @@ from ._reweighted import (
     VBKF as VBKF,
     irls_update as irls_update,
 )
+from ._bcot import BCOTKF as BCOTKF, BCOTWorstCase as BCOTWorstCase, bcot_worst_case as bcot_worst_case
+from ._theta_max import ThetaMax as ThetaMax, theta_max as theta_max
+from ._wasserstein_dr import (
+    CovarianceRecursion as CovarianceRecursion,
+    SteadyStateDR as SteadyStateDR,
+    SteadyStateDRKF as SteadyStateDRKF,
+    WassersteinDRKF as WassersteinDRKF,
+)

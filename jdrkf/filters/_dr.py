@@ -140,7 +140,7 @@ class DRKF(AbstractFilter):
     joint_set: AbstractAmbiguitySet | None = None
     rtol: float | None = eqx.field(default=None, static=True)
     max_iter: int = eqx.field(default=500, static=True)
-    throw: bool = eqx.field(default=True, static=True)
+    throw: bool = eqx.field(default=True, static=True, kw_only=True)  # declared first by AbstractFilter
     nan_as_missing: bool = eqx.field(default=True, static=True)
 
     def __check_init__(self):

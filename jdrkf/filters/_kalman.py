@@ -25,14 +25,14 @@ def predict(model: LinearModel, belief: Gaussian, t: Int[ArrayLike, ""], u: Floa
     return Gaussian(mean, cov)
 
 
-def _masked_measurement(mdl: LinearModel, y: Float[Array, " m"]):
+def _masked_measurement(mdl: LinearModel, y: Float[Array, " m"], noise_cov: Float[Array, "m m"] | None = None):
     """Rows of missing (NaN) components are decoupled: `H` row and residual set to
-    zero and the `R` row/column replaced by the identity's. The update then equals
-    the update with only the observed rows, with static shapes."""
+    zero and the `R` (or `noise_cov`) row/column replaced by the identity's. The
+    update then equals the update with only the observed rows, with static shapes."""
     observed = ~jnp.isnan(y)
     obs_f = observed.astype(y.dtype)
     h = mdl.H * obs_f[:, None]
-    r = mdl.R * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
+    r = (mdl.R if noise_cov is None else noise_cov) * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
     resid = jnp.where(observed, y - mdl.noise_mean, 0.0)
     return observed, h, r, resid
 
@@ -166,23 +166,31 @@ class SteadyStateKalmanFilter(AbstractFilter):
         return prior.mean, ss, linalg.cholesky(ss.innovation_cov)
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
-        mean, ss, chol_s = state
-        mean_pred = model.F @ mean + model.G @ model.process_mean
-        if model.B is not None:
-            mean_pred = mean_pred + model.B @ u
-        innov = y - model.noise_mean - model.H @ mean_pred
-        if self.nan_as_missing:
-            # Drop missing components; the log-likelihood is the marginal of N(0, S) on the rest.
-            observed, h, r, _ = _masked_measurement(model, y)
-            innov = jnp.where(observed, innov, 0.0)
-            chol_obs = linalg.cholesky(linalg.symmetrize(h @ ss.predicted_cov @ h.T + r))
-            num_observed = jnp.sum(observed.astype(innov.dtype))
-        else:
-            chol_obs, num_observed = chol_s, y.shape[0]
-        mean_filt = mean_pred + ss.gain @ innov
-        loglik = _gaussian_loglik(chol_obs, innov, num_observed)
-        pred = Gaussian(mean_pred, ss.predicted_cov)
-        filt = Gaussian(mean_filt, ss.filtered_cov)
-        failed = ~jnp.all(jnp.isfinite(chol_s))
-        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
-        return (mean_filt, ss, chol_s), out
+        return _constant_gain_step(self, model, state, y, u, None)
+
+
+def _constant_gain_step(flt, model, state, y, u, noise_cov, converged=True):
+    """One step with the constant gain of `state = (mean, SteadyStateGain, chol(S))`;
+    `noise_cov` is the measurement covariance behind `S` (default `R`; used for missing data)."""
+    mean, ss, chol_s = state
+    mean_pred = model.F @ mean + model.G @ model.process_mean
+    if model.B is not None:
+        mean_pred = mean_pred + model.B @ u
+    innov = y - model.noise_mean - model.H @ mean_pred
+    if flt.nan_as_missing:
+        # Drop missing components; the log-likelihood is the marginal of N(0, S) on the rest.
+        observed, h, r, _ = _masked_measurement(model, y, noise_cov)
+        innov = jnp.where(observed, innov, 0.0)
+        chol_obs = linalg.cholesky(linalg.symmetrize(h @ ss.predicted_cov @ h.T + r))
+        num_observed = jnp.sum(observed.astype(innov.dtype))
+    else:
+        chol_obs, num_observed = chol_s, y.shape[0]
+    mean_filt = mean_pred + ss.gain @ innov
+    loglik = _gaussian_loglik(chol_obs, innov, num_observed)
+    pred = Gaussian(mean_pred, ss.predicted_cov)
+    filt = Gaussian(mean_filt, ss.filtered_cov)
+    failed = ~jnp.all(jnp.isfinite(chol_s))
+    result = _step_result(failed, filt)
+    result = RESULTS.where((result == RESULTS.successful) & ~jnp.asarray(converged), RESULTS.solver_not_converged, result)
+    out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=result)
+    return (mean_filt, ss, chol_s), out
