@@ -78,6 +78,9 @@ SYSTEM = {
 DATA_SEED = 0
 
 
+from _provenance import cpu_model, loadavg, package_source_hash  # noqa: E402
+
+
 def system_arrays(dtype="float64"):
     return {k: np.asarray(v, dtype=dtype) for k, v in SYSTEM.items()}
 
@@ -161,43 +164,8 @@ def numpy_kf(F, H, Q, R, m0, P0, ys):
 # --------------------------------------------------------------------------- helpers
 
 
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def loadavg():
-    try:
-        return list(os.getloadavg())
-    except OSError:
-        return None
-
-
 def maxabs(a, b) -> float:
     return float(np.max(np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))))
-
-
-def package_source_hash(pkg) -> str:
-    """sha256 over the package's .py files (the library may be edited between runs)."""
-    import hashlib
-
-    root = os.path.dirname(os.path.abspath(pkg.__file__))
-    h = hashlib.sha256()
-    for dirpath, dirnames, filenames in sorted(os.walk(root)):
-        dirnames.sort()
-        for fn in sorted(filenames):
-            if fn.endswith(".py"):
-                path = os.path.join(dirpath, fn)
-                h.update(os.path.relpath(path, root).encode())
-                with open(path, "rb") as f:
-                    h.update(f.read())
-    return h.hexdigest()[:16]
 
 
 def log(msg: str) -> None:

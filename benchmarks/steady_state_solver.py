@@ -60,7 +60,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import faulthandler
-import hashlib
 import json
 import os
 import platform
@@ -86,69 +85,11 @@ TOLERANCES = (1e-10, 1e-9, 1e-8)  # as tests/stationary_oracle.py
 # --------------------------------------------------------------------------- helpers
 
 
+from _provenance import cpu_model, loadavg, package_source_hash, git_info, versions, parse_size  # noqa: E402
+
+
 def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def loadavg():
-    try:
-        return list(os.getloadavg())
-    except OSError:
-        return None
-
-
-def package_source_hash() -> str:
-    """sha256 over jdrkf's .py files (the library may be edited between runs)."""
-    root = os.path.join(ROOT, "jdrkf")
-    h = hashlib.sha256()
-    for dirpath, dirnames, filenames in sorted(os.walk(root)):
-        dirnames.sort()
-        for fn in sorted(filenames):
-            if fn.endswith(".py"):
-                path = os.path.join(dirpath, fn)
-                h.update(os.path.relpath(path, root).encode())
-                with open(path, "rb") as f:
-                    h.update(f.read())
-    return h.hexdigest()[:16]
-
-
-def git_info() -> dict:
-    def run(*cmd):
-        try:
-            return subprocess.run(["git", *cmd], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-        except (OSError, subprocess.CalledProcessError):
-            return None
-
-    status = run("status", "--porcelain", "--", "jdrkf")
-    return {"commit": run("rev-parse", "HEAD"), "jdrkf_dirty": bool(status) if status is not None else None}
-
-
-def versions() -> dict:
-    import importlib.metadata as md
-
-    out = {"python": platform.python_version()}
-    for pkg in ["jax", "jaxlib", "equinox", "cvxpy", "clarabel", "numpy", "scipy", "jdrkf"]:
-        try:
-            out[pkg] = md.version(pkg)
-        except md.PackageNotFoundError:
-            out[pkg] = None
-    return out
-
-
-def parse_size(s: str) -> tuple[int, int]:
-    n, m = s.lower().split("x")
-    return int(n), int(m)
 
 
 def rel(a, b) -> float:
