@@ -62,15 +62,21 @@ def plot_sweeps(report: Report, path: str | pathlib.Path) -> pathlib.Path:
 
 def plot_error_curves(report: Report, path: str | pathlib.Path, window: int = 50) -> pathlib.Path:
     """Per-step mean squared error `10 log10(e_k)` smoothed over `window` steps, one
-    line per filter (the style of Wang & Ye 2022, Figs. 1–2). Returns the file path."""
+    line per filter (the style of Wang & Ye 2022, Figs. 1–2). A report with
+    `curves_ylabel` set has other per-step quantities: they are drawn unsmoothed on a
+    log scale with that label. Returns the file path."""
     if not report.curves:
         raise ValueError("the report has no per-step curves; run the experiment with curves=True")
     fig = _figure(figsize=(7, 4))
     ax = fig.subplots()
     for name, curve in report.curves.items():
-        ax.plot(np.arange(1, len(curve) + 1), 10 * np.log10(moving_average(curve, window)), label=name)
+        k = np.arange(1, len(curve) + 1)
+        if report.curves_ylabel is None:
+            ax.plot(k, 10 * np.log10(moving_average(curve, window)), label=name)
+        else:
+            ax.semilogy(k, curve, label=name)
     ax.set_xlabel("time step k")
-    ax.set_ylabel(f"10 log10 MSE ({window}-step moving average, dB)")
+    ax.set_ylabel(f"10 log10 MSE ({window}-step moving average, dB)" if report.curves_ylabel is None else report.curves_ylabel)
     ax.set_title(report.experiment)
     ax.legend()
     ax.grid(alpha=0.3)

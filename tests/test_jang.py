@@ -8,15 +8,20 @@ import jdrkf
 from jdrkf.experiments import jang
 
 
-def test_convergence_experiment_small():
+def test_convergence_experiment_small(tmp_path):
     report = jang.run_convergence(3, seed=0)
     rows = {(r.filter, r.metric): r for r in report.rows}
     np.testing.assert_allclose(rows[("2-D benchmark", "theta_max")].mean, 3.356, rtol=5e-3)
     # Fig. 1: the gap at step 20 is of the order of the paper's ≈ 8e-6.
     assert 1e-6 < rows[("2-D benchmark", "relative trace gap at step 20")].mean < 1e-4
     assert rows[("random systems", "fraction within 2%")].mean == 1.0
-    curve = next(iter(report.curves.values()))
+    curve = report.curves["to the optimum of (14)"]
     assert curve[0] > 0.5 and curve[19] < 1e-4
+    # The recursion reaches its own limit to round-off while the gap to (14) levels off.
+    assert report.curves["to the recursion's own limit (step 40)"][-2] < 1e-10 < curve[-1]
+    from jdrkf.plotting import plot_error_curves
+
+    assert plot_error_curves(report, tmp_path / "conv.png").exists()
 
 
 def test_random_systems_satisfy_assumptions():

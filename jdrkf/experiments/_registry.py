@@ -50,6 +50,7 @@ class Report:
     notes: list[str] = dataclasses.field(default_factory=list)
     curves: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     sweeps: dict[str, Sweep] = dataclasses.field(default_factory=dict)
+    curves_ylabel: str | None = None  # None: curves are per-step MSEs (plotted in dB, smoothed)
 
     def to_json(self) -> dict:
         return {
