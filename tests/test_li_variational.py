@@ -73,8 +73,15 @@ def test_stkf_ar2_beats_kf_under_measurement_outliers(torsion):
 
 def test_identity_report():
     rep = lv.run_identity(runs=3, seed=2, num_steps=500)
-    assert len(rep.rows) == 2 * 4 * 2
+    assert len([r for r in rep.rows if r.metric.startswith("rmse")]) == 2 * 4 * 2
     assert all((r.paper is None) == r.filter.endswith("(reweighted cov)") for r in rep.rows)
+    # Table III's last column: iterations per step, one row per filter and case, all >= 1.
+    iters = {(r.filter, r.metric): r for r in rep.rows if r.metric.startswith("iterations@")}
+    assert len(iters) == 2 * 4 and all(r.mean >= 1.0 and r.runs == 3 for r in iters.values())
+    assert iters[("STKF", "iterations@y1")].paper == 1.096 and iters[("STKF-AR1", "iterations@y2")].paper == 2.190
+    assert iters[("KF", "iterations@y1")].mean == 1.0 and iters[("VBKF", "iterations@y2")].mean == 4.0
+    assert 1.0 <= iters[("STKF", "iterations@y1")].mean <= 2.0  # the authors' cap of 2 passes
+    assert 1.0 < iters[("STKF-AR1", "iterations@y2")].mean <= 4.0  # cap 4; the adaptive filter iterates
     mean = {(r.filter, r.metric): r.mean for r in rep.rows}
     # Proposition 2: with the reweighted posterior covariance STKF-AR1 (ν_r = 1/(1 − ρ)) is the VBKF.
     for state in (1, 2):
