@@ -195,3 +195,25 @@ def test_bad_input():
 def test_drkf_positional_sets_as_documented():
     flt = jdrkf.DRKF(Wasserstein(0.4), Wasserstein(0.2))
     assert isinstance(flt.state_set, Wasserstein) and flt.throw is True
+
+
+# EM nominals of seed 004's LQR study (5 outputs; eigenvalues lifted to 1e-4): the optimality
+# system also has a root with an indefinite adjoint Λ and a lower value (an unstable gain);
+# the solver must stay on the branch of the convex problem's KKT point.
+Q_EM = [[0.0007789979017225235, -0.001767063591106396, 3.308166160106838e-05, 0.0002085791437367776],
+        [-0.001767063591106396, 0.0070733447052783276, -0.0001718648209080409, -0.0006557940825710237],
+        [3.308166160106838e-05, -0.0001718648209080409, 0.00010485834570302319, 1.6686792182533556e-05],
+        [0.0002085791437367776, -0.0006557940825710237, 1.6686792182533556e-05, 0.00020965854526602552]]
+R_EM = [[0.010489965641882659, -0.0007295540456303367], [-0.0007295540456303367, 0.00015122722478985484]]
+
+
+def test_ill_conditioned_em_nominal_stays_on_the_convex_branch():
+    a = np.array([[1, 0.2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.2], [0, 0, 0, 1]], float)
+    c = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    q, r = np.array(Q_EM), np.array(R_EM)
+    sol = solve(jdrkf.SteadyStateDRKF(0.2, 0.2), _model(a, c, q, r))
+    ref = stationary_sdp(a, c, q, r, 0.2, 0.2)
+    assert bool(sol.converged)
+    np.testing.assert_allclose(float(sol.value), ref["value"], rtol=1e-6)
+    assert np.min(np.linalg.eigvalsh(np.asarray(sol.adjoint))) > 0
+    assert np.max(np.abs(np.linalg.eigvals(a @ (np.eye(4) - np.asarray(sol.gain) @ c)))) < 1

@@ -231,6 +231,11 @@ def _run_batch(flt, qs, rs, keys, setting_laws, true_model, controller, referenc
         ok = res.results == RESULTS.successful
         return res.cost(LQR_Q, LQR_R), res.mse(), jnp.all(ok[1:]), ok[0]
 
+    if isinstance(flt, (BCOTKF, SteadyStateDRKF)):
+        # One run after another (`lax.map`): these solvers call LAPACK, and jaxlib 0.10's
+        # batched LAPACK kernels (ParallelBatchMap) can deadlock the CPU thread pool under
+        # `vmap` — a 200-run vmap of BCOT hung with every thread waiting.
+        return jax.lax.map(lambda x: one(*x), (qs, rs, keys))
     return jax.vmap(one)(qs, rs, keys)
 
 
@@ -309,7 +314,7 @@ def run_lqr(runs: int, seed: int, progress: bool = False, curves: bool = False, 
                      "(our BCOT is solved exactly and predicts once; the authors' applies A twice).")
         notes.append(f"{label}: θ chosen on {train_runs} separate training runs (lowest mean LQR cost): "
                      + ", ".join(f"{n} θ = {chosen[n]}" for n in ("risk-sensitive", "BCOT", "SS-DRKF") if n in chosen) + ".")
-        ss = test["SS-DRKF"][chosen["SS-DRKF"]][0]
+        ss = np.where(test["SS-DRKF"][chosen["SS-DRKF"]][2], test["SS-DRKF"][chosen["SS-DRKF"]][0], np.nan)
         for name in [n for n in ("KF", "SS-KF", "risk-sensitive", "BCOT") if n in test]:
             other = np.where(test[name][chosen[name]][2], test[name][chosen[name]][0], np.nan)
             d = other - ss

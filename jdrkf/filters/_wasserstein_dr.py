@@ -233,10 +233,13 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
     success and halves after a failure (first try: `τ = 1` directly)."""
     dtype = a.dtype
     zero = jnp.zeros((), dtype)
-    # On the maximizing branch the multipliers are positive (the negative roots of the
-    # sets' scalar equations belong to the minimizing oracle).
+    # On the branch of the convex problem's KKT point the ball multipliers are positive
+    # (negative roots of the sets' scalar equations belong to the minimizing oracle) and
+    # the adjoint is PSD (`I + AᵀΛA` is the multiplier of the Schur inequality of (14));
+    # the system has other roots, with an indefinite Λ and a lower value.
     def in_domain(z):
-        return (z[2] > 0) & (z[3] > 0)
+        lam = jnp.linalg.eigvalsh(linalg.symmetrize(z[4]))
+        return (z[2] > 0) & (z[3] > 0) & (lam[0] >= -1e-9 * (1.0 + jnp.abs(lam[-1])))
 
     def cond(c):
         _, tau, dtau, _, _, _ = c
