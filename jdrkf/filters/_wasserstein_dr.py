@@ -331,6 +331,10 @@ class SteadyStateDRKF(AbstractFilter):
     the worst-case prior `N(x̄⁻, Σ⁻*)`, `filtered` the posterior `Σ*`, and `loglik` is the
     log-density of `y` under `N(Cx̄⁻ + v̂, CΣ⁻*Cᵀ + Σv*)`.
 
+    The solve calls LAPACK (traced under `linalg.lapack_only`): to solve for many models,
+    map with `jax.lax.map` rather than `vmap` (jaxlib 0.10's batched LAPACK kernels can
+    deadlock; see the README).
+
     **Arguments:** `theta_x`, `theta_v` (radii ≥ 0, differentiable); `max_iter`
     (Newton iterations per continuation stage, default 20); `throw`, `nan_as_missing` as in
     `jdrkf.SteadyStateKalmanFilter`. A solve that does not converge makes `init` fail
