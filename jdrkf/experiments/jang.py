@@ -99,8 +99,9 @@ def run_convergence(runs: int, seed: int, progress: bool = False, curves: bool =
 
     rng = np.random.default_rng(seed)
     a, c, w, v, th, rejected = random_systems(rng, runs)
-    batch = jax.jit(jax.vmap(_gap_curve, in_axes=(0, 0, 0, 0, 0, None)), static_argnums=5)
-    gaps, _, oks = batch(a, c, w, v, th, CONVERGENCE_STEPS)
+    # One system after another: the solvers call LAPACK (jaxlib's batched LAPACK can deadlock under vmap).
+    batch = jax.jit(lambda *x: jax.lax.map(lambda y: _gap_curve(*y, CONVERGENCE_STEPS), x))
+    gaps, _, oks = batch(a, c, w, v, th)
     final = np.asarray(gaps)[:, -1]
     elapsed = time.perf_counter() - start
 
