@@ -261,6 +261,7 @@ def run(
     report = Report(experiment="li-convergence", seed=seed, rows=rows)
     if curves:
         report.curves = report_curves
+        report.curves_ylabel = "measurement-noise variance"
     failed = {f: float(np.mean(o["success"])) for f, o in out.items() if np.mean(o["success"]) < 1.0}
     wpw = {g: whitened_posterior_variance(g) for g in (LOW, HIGH)}
     report.notes = [
