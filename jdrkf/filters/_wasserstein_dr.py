@@ -235,11 +235,11 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
     zero = jnp.zeros((), dtype)
     # On the branch of the convex problem's KKT point the ball multipliers are positive
     # (negative roots of the sets' scalar equations belong to the minimizing oracle) and
-    # the adjoint is PSD (`I + AᵀΛA` is the multiplier of the Schur inequality of (14));
-    # the system has other roots, with an indefinite Λ and a lower value.
+    # `I + AᵀΛA`, the multiplier of the Schur inequality of (14), is PSD; the system has
+    # other roots, with an indefinite weight and a lower value.
     def in_domain(z):
-        lam = jnp.linalg.eigvalsh(linalg.symmetrize(z[4]))
-        return (z[2] > 0) & (z[3] > 0) & (lam[0] >= -1e-9 * (1.0 + jnp.abs(lam[-1])))
+        weight = jnp.linalg.eigvalsh(linalg.symmetrize(jnp.eye(a.shape[0], dtype=dtype) + a.T @ z[4] @ a))
+        return (z[2] > 0) & (z[3] > 0) & (weight[0] > 0)
 
     def cond(c):
         _, tau, dtau, _, _, _ = c
