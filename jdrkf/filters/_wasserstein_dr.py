@@ -315,7 +315,8 @@ class SteadyStateDRKF(AbstractFilter):
     of the Kalman filter). This smooth system (`n² + m² + 2 + n²` unknowns) is solved by
     Newton's method with backtracking, continued in the radii from `0` (where the
     nominal steady state (DARE) and its adjoint solve it exactly) to `(θx, θv)` — in one
-    stage when that converges, in more otherwise; derivatives with respect to `θx`,
+    stage when that converges, in more otherwise, keeping the ball multipliers positive and
+    `I + AᵀΛA ⪰ 0` (the Schur multiplier; the system also has spurious roots); derivatives with respect to `θx`,
     `θv` and the model come from the implicit function theorem on the same system
     (`lax.custom_root`). The value matches the SDP (14) solved by Clarabel to ~1e-10
     (tests).
