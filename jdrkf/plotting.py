@@ -46,14 +46,16 @@ def plot_sweeps(report: Report, path: str | pathlib.Path) -> pathlib.Path:
     axes = fig.subplots(1, len(report.sweeps), squeeze=False)
     for ax, (title, sw) in zip(axes[0], report.sweeps.items(), strict=True):
         for name, vals in sw.values.items():
-            stats = [metrics.mean_ci(vals[:, j]) for j in range(len(sw.x))]
+            # Failed runs are NaN in a sweep: each point averages the finite runs.
+            cols = [vals[:, j][np.isfinite(vals[:, j])] for j in range(len(sw.x))]
+            stats = [metrics.mean_ci(c) if c.size > 1 else (float(np.mean(c)) if c.size else np.nan, (np.nan, np.nan)) for c in cols]
             mean = np.array([m for m, _ in stats])
             (line,) = ax.plot(sw.x, mean, label=name)
             ax.fill_between(sw.x, [c[0] for _, c in stats], [c[1] for _, c in stats], color=line.get_color(), alpha=0.2)
             if name in sw.paper:
                 ax.plot(sw.x, sw.paper[name], "x", color=line.get_color())
         ax.set_xlabel(sw.x_label)
-        ax.set_ylabel("RMSE")
+        ax.set_ylabel(sw.y_label)
         ax.set_title(title + (" (x: paper)" if sw.paper else ""))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)

@@ -67,10 +67,16 @@ def test_em_nominals_and_closed_loop_batch():
     np.testing.assert_allclose(np.asarray(cost0), out["SS-KF"], rtol=1e-8)
 
 
-def test_lqr_experiment_small():
+def test_lqr_experiment_small(tmp_path):
     # Same shapes as above, so the two filters are not compiled again.
     report = jang.run_lqr(3, seed=0, train_runs=3, settings=("gaussian",), names=("SS-KF", "SS-DRKF"))
     assert [(r.filter, r.metric) for r in report.rows] == [
         ("Gaussian: SS-KF", "lqr_cost"), ("Gaussian: SS-KF", "mse"), ("Gaussian: SS-DRKF", "lqr_cost"), ("Gaussian: SS-DRKF", "mse")]
     assert any("SS-DRKF ranks" in n for n in report.notes)
     assert any("θ chosen on 3 separate training runs" in n for n in report.notes)
+    # A failed run is NaN in a sweep; the plot averages the finite runs (the CLI's --plots path).
+    sweep = next(iter(report.sweeps.values()))
+    sweep.values["SS-DRKF"][0, 0] = np.nan
+    from jdrkf.plotting import plot_sweeps
+
+    assert plot_sweeps(report, tmp_path / "sweeps.png").exists()

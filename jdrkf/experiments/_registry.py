@@ -37,6 +37,7 @@ class Sweep:
     x: np.ndarray
     values: dict[str, np.ndarray]
     paper: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    y_label: str = "RMSE"
 
 
 @dataclasses.dataclass

@@ -307,7 +307,8 @@ def run_lqr(runs: int, seed: int, progress: bool = False, curves: bool = False, 
         for name in [n for n in ("risk-sensitive", "BCOT", "SS-DRKF") if n in test]:
             sweeps[f"{label}: {name} LQR cost vs θ (test runs; NaN = failed run)"] = Sweep(
                 "theta", np.asarray(THETAS),
-                {name: np.stack([np.where(test[name][th][2], test[name][th][0], np.nan) for th in THETAS], axis=1)})
+                {name: np.stack([np.where(test[name][th][2], test[name][th][0], np.nan) for th in THETAS], axis=1)},
+                y_label="LQR cost")
         order = sorted(chosen, key=lambda n: np.mean(np.where(test[n][chosen[n]][2], test[n][chosen[n]][0], np.inf)))
         notes.append(f"{label}: order by mean LQR cost on the test runs: {' < '.join(order)}; SS-DRKF ranks "
                      f"{'first, as in the paper' if order[0] == 'SS-DRKF' else 'NOT first (the paper has it first)'}. "
