@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -79,10 +79,17 @@ class FilterResult(eqx.Module):
     result: RESULTS
 
 
-def check_observations(model: LinearModel, prior: Gaussian, ys: Any, inputs: Any) -> tuple[Array, Array | None]:
-    """Eager checks of a filter call; returns `ys` and `inputs` as arrays."""
-    if not isinstance(model, LinearModel):
-        raise ValueError(f"model must be a jdrkf.LinearModel, got {type(model).__name__}")
+def check_observations(
+    model: Any, prior: Gaussian, ys: Any, inputs: Any, model_types: tuple[type, ...] = (LinearModel,)
+) -> tuple[Array, Array | None]:
+    """Eager checks of a filter call; returns `ys` and `inputs` as arrays.
+
+    `model` must be an instance of one of `model_types`; each must provide `state_dim`,
+    `obs_dim`, `check_horizon(T)` and `check_inputs(inputs, T)`.
+    """
+    if not isinstance(model, model_types):
+        names = " or ".join(f"jdrkf.{t.__name__}" for t in model_types)
+        raise ValueError(f"model must be a {names}, got {type(model).__name__}")
     if not isinstance(prior, Gaussian):
         raise ValueError(f"prior must be a jdrkf.Gaussian, got {type(prior).__name__}")
     n, m = model.state_dim, model.obs_dim
@@ -108,9 +115,13 @@ class AbstractFilter(eqx.Module):
     `throw` (static): if `True`, a failed run raises through `eqx.error_if` (under
     `vmap`: if any run fails). Set `throw=False` for Monte Carlo sweeps and inspect
     `FilterResult.result` instead.
+
+    `model_types` (class variable): the model classes `__call__` accepts (default
+    `LinearModel`; multi-sensor and nonlinear filters override it).
     """
 
     throw: eqx.AbstractVar[bool]
+    model_types: ClassVar[tuple[type, ...]] = (LinearModel,)
 
     @abc.abstractmethod
     def init(self, model: LinearModel, prior: Gaussian) -> PyTree:
@@ -142,7 +153,7 @@ class AbstractFilter(eqx.Module):
         `key` is positional so that `jax.vmap(filter, in_axes=(None, None, 0, 0))`
         maps over runs and keys; deterministic filters ignore it.
         """
-        ys, inputs = check_observations(model, prior, ys, inputs)
+        ys, inputs = check_observations(model, prior, ys, inputs, self.model_types)
         num_steps = ys.shape[0]
         keys = None if key is None else jax.random.split(key, num_steps)
 
