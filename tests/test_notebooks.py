@@ -16,6 +16,7 @@ def test_notebooks_exist():
     assert NOTEBOOKS, "no notebooks found"
 
 
+@pytest.mark.slow  # 1-2 min per notebook: run with `pytest -m slow`
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
 def test_notebook_runs_in_quick_mode(path, tmp_path):
     cells = json.loads(path.read_text())["cells"]
