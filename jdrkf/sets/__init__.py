@@ -2,6 +2,17 @@
 
 from ._base import AbstractAmbiguitySet as AbstractAmbiguitySet
 from ._divergence import KL as KL
+from ._maxent import (
+    MaxEntContinuous as MaxEntContinuous,
+    MaxEntResult as MaxEntResult,
+    maxent_kl as maxent_kl,
+    maxent_kl_solve as maxent_kl_solve,
+    maxent_transport as maxent_transport,
+    maxent_transport_solve as maxent_transport_solve,
+    maxent_wasserstein as maxent_wasserstein,
+    maxent_wasserstein_continuous as maxent_wasserstein_continuous,
+    maxent_wasserstein_solve as maxent_wasserstein_solve,
+)
 from ._moment import Moment as Moment
 from ._outliers import (
     AbstractOutlierModel as AbstractOutlierModel,
