@@ -5,6 +5,7 @@ import importlib.metadata
 from . import linalg as linalg, metrics as metrics, sets as sets, tuning as tuning
 from ._gaussian import Gaussian as Gaussian
 from ._models import LinearModel as LinearModel
+from ._nonlinear import NonlinearModel as NonlinearModel
 from ._em import EMResult as EMResult, em_noise_covariances as em_noise_covariances
 from ._closed_loop import ClosedLoopResult as ClosedLoopResult, LQRController as LQRController, closed_loop as closed_loop
 from ._montecarlo import Clairvoyant as Clairvoyant, montecarlo as montecarlo
@@ -24,6 +25,7 @@ from .filters import (
     BCOTKF as BCOTKF,
     CovarianceRecursion as CovarianceRecursion,
     DRKF as DRKF,
+    EnsembleKF as EnsembleKF,
     FilterResult as FilterResult,
     HuberKF as HuberKF,
     KalmanFilter as KalmanFilter,
@@ -39,6 +41,7 @@ from .filters import (
     SteadyStateKalmanFilter as SteadyStateKalmanFilter,
     StepOutput as StepOutput,
     TauKF as TauKF,
+    UnscentedKF as UnscentedKF,
     ThetaMax as ThetaMax,
     VBKF as VBKF,
     WassersteinDRKF as WassersteinDRKF,

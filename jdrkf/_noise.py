@@ -10,6 +10,7 @@ numbers. Seed 000's clairvoyant TMKF filters the outlier-free measurements
 from __future__ import annotations
 
 import abc
+import math
 from typing import Callable
 
 import equinox as eqx
@@ -62,6 +63,20 @@ def _cov_and_mean(cov, mean):
     return cov.astype(dtype), mean.astype(dtype)
 
 
+def _mahalanobis_and_logdet(x, mean, cov):
+    """`((x − mean)ᵀ cov⁻¹ (x − mean), log det cov)` for `x` of shape `(..., d)`."""
+    chol = linalg.cholesky(linalg.symmetrize(cov))
+    diff = jnp.asarray(x, cov.dtype) - mean
+    solve = jnp.vectorize(lambda d: linalg.cho_solve(chol, d), signature="(n)->(n)")
+    return jnp.sum(diff * solve(diff), axis=-1), 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+
+
+def _gaussian_log_density(x, mean, cov):
+    """`log N(x; mean, cov)` (positive-definite `cov`), batched over leading axes of `x`."""
+    quad, logdet = _mahalanobis_and_logdet(x, mean, cov)
+    return -0.5 * (quad + logdet + mean.shape[-1] * math.log(2 * math.pi))
+
+
 def _check_probability(name, p, upper=1.0):
     p = as_float_array(name, p, (0,))
     if is_concrete(p) and not (0.0 <= float(p) <= upper):
@@ -100,6 +115,10 @@ class GaussianNoise(_NominalGaussianNoise):
     def sample_parts(self, key, t=0):
         return self._nominal(key), jnp.zeros(self.dim, self._cov.dtype)
 
+    def log_prob(self, x: Float[ArrayLike, "... d"], t: Int[ArrayLike, ""] = 0) -> Float[Array, "..."]:
+        """Log density `log N(x; mean, cov)` (requires positive-definite `cov`)."""
+        return _gaussian_log_density(x, self._mean, self._cov)
+
 
 class MixtureNoise(_NominalGaussianNoise):
     """Contaminated Gaussian `(1 − p) N(μ, R) + p N(μ, k R)` (`k = scale ≥ 1`).
@@ -127,6 +146,15 @@ class MixtureNoise(_NominalGaussianNoise):
         k1, k2, k3 = jax.random.split(key, 3)
         extra = jnp.sqrt(self.scale - 1.0) * (self._nominal(k2) - self._mean)
         return self._nominal(k1), jnp.where(jax.random.bernoulli(k3, self.p), extra, 0.0)
+
+    def log_prob(self, x: Float[ArrayLike, "... d"], t: Int[ArrayLike, ""] = 0) -> Float[Array, "..."]:
+        """Log density `log((1 − p) N(x; μ, R) + p N(x; μ, k R))` (positive-definite `R`)."""
+        quad, logdet = _mahalanobis_and_logdet(x, self._mean, self._cov)
+        d = self.dim
+        base = -0.5 * (logdet + d * math.log(2 * math.pi))
+        nominal = base - 0.5 * quad
+        outlier = base - 0.5 * (quad / self.scale + d * jnp.log(self.scale))
+        return jnp.logaddexp(jnp.log1p(-self.p) + nominal, jnp.log(self.p) + outlier)
 
 
 class OutlierNoise(_NominalGaussianNoise):
@@ -172,6 +200,23 @@ class StudentTNoise(_NominalGaussianNoise):
         x = self._mean + jnp.sqrt((self.dof - 2.0) / g) * (self._nominal(k1) - self._mean)
         return x, jnp.zeros_like(x)
 
+    def log_prob(self, x: Float[ArrayLike, "... d"], t: Int[ArrayLike, ""] = 0) -> Float[Array, "..."]:
+        """Log density of the multivariate t with `ν = dof`, location `μ` and scale
+        matrix `Σ = (ν − 2)/ν · cov`: `log Γ((ν+d)/2) − log Γ(ν/2) − (d/2) log(νπ)
+        − ½ log det Σ − ((ν+d)/2) log(1 + δ/ν)`, `δ = (x − μ)ᵀ Σ⁻¹ (x − μ)`."""
+        nu, d = self.dof, self.dim
+        ratio = (nu - 2.0) / nu
+        quad, logdet = _mahalanobis_and_logdet(x, self._mean, self._cov)
+        delta = quad / ratio
+        logdet_scale = logdet + d * jnp.log(ratio)
+        return (
+            jax.scipy.special.gammaln(0.5 * (nu + d))
+            - jax.scipy.special.gammaln(0.5 * nu)
+            - 0.5 * d * jnp.log(nu * math.pi)
+            - 0.5 * logdet_scale
+            - 0.5 * (nu + d) * jnp.log1p(delta / nu)
+        )
+
 
 class UQuadraticNoise(AbstractNoise):
     """Independent U-quadratic components on the box `[low, high]` (seed 004):
@@ -210,6 +255,15 @@ class UQuadraticNoise(AbstractNoise):
         u = jax.random.uniform(key, (self.dim,), a.dtype)
         x = beta + jnp.cbrt(3.0 * u / alpha - (beta - a) ** 3)
         return x, jnp.zeros_like(x)
+
+    def log_prob(self, x: Float[ArrayLike, "... d"], t: Int[ArrayLike, ""] = 0) -> Float[Array, "..."]:
+        """Log density `Σ_i log(α_i (x_i − β_i)²)` on the box, `−inf` outside."""
+        a, b = self.low, self.high
+        x = jnp.asarray(x, a.dtype)
+        alpha = 12.0 / (b - a) ** 3
+        beta = 0.5 * (a + b)
+        inside = jnp.all((x >= a) & (x <= b), axis=-1)
+        return jnp.where(inside, jnp.sum(jnp.log(alpha) + 2.0 * jnp.log(jnp.abs(x - beta)), axis=-1), -jnp.inf)
 
 
 class ScaledNoise(AbstractNoise):
@@ -255,6 +309,16 @@ class ScaledNoise(AbstractNoise):
         nominal, outlier = self.base.sample_parts(key, t)
         root = jnp.sqrt(self._a(t))
         return self.base.mean + root * (nominal - self.base.mean), root * outlier
+
+    def log_prob(self, x: Float[ArrayLike, "... d"], t: Int[ArrayLike, ""] = 0) -> Float[Array, "..."]:
+        """Log density at step `t`: `log p_base(μ + (x − μ)/√a(t)) − (d/2) log a(t)`
+        (requires `a(t) > 0` and a base law with a density)."""
+        if not hasattr(self.base, "log_prob"):
+            raise ValueError(f"the base law ({type(self.base).__name__}) has no density")
+        a = self._a(t)
+        mean = self.base.mean
+        inner = mean + (jnp.asarray(x, mean.dtype) - mean) / jnp.sqrt(a)
+        return self.base.log_prob(inner, t) - 0.5 * self.dim * jnp.log(a)
 
 
 class UniformPerturbation(eqx.Module):

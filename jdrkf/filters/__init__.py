@@ -32,3 +32,4 @@ from ._wasserstein_dr import (
     SteadyStateDRKF as SteadyStateDRKF,
     WassersteinDRKF as WassersteinDRKF,
 )
+from ._unscented import EnsembleKF as EnsembleKF, UnscentedKF as UnscentedKF, sigma_points as sigma_points
