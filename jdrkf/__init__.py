@@ -23,6 +23,7 @@ from ._simulate import Trajectories as Trajectories, simulate as simulate
 from .filters import (
     AbstractFilter as AbstractFilter,
     BCOTKF as BCOTKF,
+    BootstrapPF as BootstrapPF,
     CovarianceRecursion as CovarianceRecursion,
     DRKF as DRKF,
     EnsembleKF as EnsembleKF,

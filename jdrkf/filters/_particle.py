@@ -1,0 +1,246 @@
+"""Bootstrap particle filter for `jdrkf.NonlinearModel` (seed 003, Sec. V baseline)."""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jax.scipy.linalg import solve_triangular
+from jax.scipy.special import logsumexp
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+
+from .. import linalg
+from .._gaussian import Gaussian
+from .._nonlinear import NonlinearModel
+from ._base import RESULTS, AbstractFilter, FilterResult, StepOutput, check_observations
+from ._resampling import RESAMPLERS
+
+_ESTIMATES = ("weighted_mean", "resampled_mean")
+
+
+class ParticleState(eqx.Module):
+    """Particle cloud `{x_i, w̄_i}`: `particles (N, n)` and normalized `log_weights (N,)`."""
+
+    particles: Float[Array, "N n"]
+    log_weights: Float[Array, " N"]
+
+
+def particle_moments(particles: Float[Array, "N n"], log_weights: Float[Array, " N"]) -> Gaussian:
+    """Weighted mean `Σ w̄_i x_i` and covariance `Σ w̄_i (x_i − m)(x_i − m)ᵀ` of a cloud
+    with normalized log-weights (no matrix factorization, so safe under `vmap`)."""
+    w = jnp.exp(log_weights)
+    mean = w @ particles
+    d = particles - mean
+    cov = linalg.symmetrize((d * w[:, None]).T @ d)
+    return Gaussian(mean, cov)
+
+
+def _gaussian_loglik_particles(model: NonlinearModel, y, hx, nan_as_missing: bool):
+    """`log N(y; h(x_i), R)` for all particles with ONE Cholesky of `R` (missing rows of
+    `y` decoupled as in `jdrkf.filters._kalman._masked_measurement`): per-particle work
+    is matrix products only, so no batched LAPACK call under `vmap` over particles."""
+    r = model.R
+    if nan_as_missing:
+        observed = ~jnp.isnan(y)
+        obs_f = observed.astype(r.dtype)
+        r = r * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
+        resid = jnp.where(observed[None, :], y[None, :] - hx, jnp.zeros((), hx.dtype))
+        num_obs = jnp.sum(obs_f)
+    else:
+        resid = y[None, :] - hx
+        num_obs = jnp.asarray(y.shape[0], r.dtype)
+    chol = linalg.cholesky(linalg.symmetrize(r))
+    chol_inv = solve_triangular(chol, jnp.eye(r.shape[0], dtype=r.dtype), lower=True)
+    z = resid @ chol_inv.T
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+    return -0.5 * (jnp.sum(z * z, axis=-1) + logdet + num_obs * math.log(2 * math.pi))
+
+
+class BootstrapPF(AbstractFilter):
+    r"""Bootstrap (sequential importance resampling) particle filter.
+
+    For additive-measurement `jdrkf.NonlinearModel`s (seed 003, eqs. (1)–(2); the PF of
+    its Sec. V experiments). Step `k` (array index `t = k − 1`), with `N` particles:
+
+    1. propagate: `x_k^i = transition(x_{k-1}^i, w^i, t)`, `w^i ~ process_noise` (default `N(0, Q)`);
+    2. weigh: `ℓ_i ← log w̄_{k-1}^i + log p(y_k | x_k^i)` (`model.measurement_logpdf`; for the
+       default Gaussian `v` one Cholesky of `R` per step serves all particles), normalized by
+       log-sum-exp; the log-likelihood increment is
+       `log p̂(y_k | y_{1:k-1}) = log Σ_i w̄_{k-1}^i p(y_k | x_k^i)` (the log of the mean
+       incremental weight after a resampling step);
+    3. estimate (`estimate="weighted_mean"`, default): the weighted mean and covariance of the
+       weighted cloud, *before* resampling (lower variance than after);
+    4. resample when `ESS = 1 / Σ w̄_i² < ess_threshold · N` (`ess_threshold = 1`: at every step),
+       then `w̄_i = 1/N`.
+
+    `estimate="resampled_mean"` reports the moments of the cloud *after* step 4 instead:
+    with `resampling="multinomial", ess_threshold=1` this is the authors' MATLAB PF
+    (multinomial resampling at every step, estimate = mean of the resampled particles;
+    see `docs/reference-settings.md` §3), which adds the resampling noise to the estimate.
+
+    `predicted` is the weighted moments of the propagated cloud (before weighing), `filtered`
+    those of step 3. `x_0`'s particles are `N` draws from `prior`.
+
+    **Arguments:**
+
+    - `num_particles`: `N ≥ 1` (static).
+    - `resampling`: `"systematic"` (default), `"stratified"`, `"residual"` or `"multinomial"`
+      (see `jdrkf.filters._resampling`).
+    - `ess_threshold`: `c ∈ [0, 1]`; `0` never resamples (sequential importance sampling).
+    - `estimate`: `"weighted_mean"` or `"resampled_mean"`.
+    - `return_particles` (static): add the weighted cloud of every step (before resampling)
+      to `info` — memory `T·N·(n + 1)` per run.
+    - `throw`, `nan_as_missing`: as `jdrkf.KalmanFilter`. With the default Gaussian
+      measurement noise, NaN entries of `y` are marginalized out; with a
+      `measurement_noise` law, an observation with any NaN entry is skipped entirely.
+
+    `info` holds `ess` (before resampling) and `resampled` per step.
+
+    **Randomness and gradients.** All randomness comes from `key` (required; the initial
+    draw uses `split(key)[0]`, step `t` uses `split(split(key)[1], T)[t]`). The resampled
+    indices are wrapped in `lax.stop_gradient`: gradients (e.g. of `marginal_loglik`
+    w.r.t. model parameters) flow through the propagated particles and the weights but
+    ignore the resampling's dependence on the parameters, so they are biased.
+
+    **Example:**
+
+    ```python
+    pf = BootstrapPF(1000)
+    result = pf(model, prior, ys, jax.random.key(0))
+    runs = jax.vmap(pf, in_axes=(None, None, 0, 0))(model, prior, ys_runs, keys)
+    ```
+    """
+
+    num_particles: int = eqx.field(static=True)
+    resampling: str = eqx.field(default="systematic", static=True, kw_only=True)
+    ess_threshold: float = eqx.field(default=0.5, static=True, kw_only=True)
+    estimate: str = eqx.field(default="weighted_mean", static=True, kw_only=True)
+    return_particles: bool = eqx.field(default=False, static=True, kw_only=True)
+    throw: bool = eqx.field(default=True, static=True, kw_only=True)
+    nan_as_missing: bool = eqx.field(default=True, static=True, kw_only=True)
+
+    model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
+
+    def __check_init__(self):
+        n = self.num_particles
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"num_particles must be a positive int, got {n!r}")
+        if self.resampling not in RESAMPLERS:
+            raise ValueError(f"resampling must be one of {sorted(RESAMPLERS)}, got {self.resampling!r}")
+        c = self.ess_threshold
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 <= float(c) <= 1.0):
+            raise ValueError(f"ess_threshold must be a number in [0, 1], got {c!r}")
+        if self.estimate not in _ESTIMATES:
+            raise ValueError(f"estimate must be one of {list(_ESTIMATES)}, got {self.estimate!r}")
+
+    def init(self, model: NonlinearModel, prior: Gaussian, key: PRNGKeyArray | None = None) -> ParticleState:
+        """`N` draws from `prior` with equal weights."""
+        if key is None:
+            raise ValueError("BootstrapPF.init needs a PRNG key (e.g. jax.random.key(0))")
+        x0 = prior.sample(key, (self.num_particles,)).astype(model.dtype)
+        lw = jnp.full((self.num_particles,), -math.log(self.num_particles), model.dtype)
+        return ParticleState(x0, lw)
+
+    def _loglik(self, model: NonlinearModel, y, particles, t):
+        hx = jax.vmap(lambda x: model.h(x, t))(particles)
+        if model.measurement_noise is None:
+            return _gaussian_loglik_particles(model, y, hx, self.nan_as_missing)
+        ll = jax.vmap(lambda x: model.measurement_logpdf(y, x, t))(particles)
+        if self.nan_as_missing:
+            ll = jnp.where(jnp.any(jnp.isnan(y)), jnp.zeros_like(ll), ll)
+        return ll
+
+    def step(self, model: NonlinearModel, state: ParticleState, y, t, u=None, key: PRNGKeyArray | None = None):
+        if key is None:
+            raise ValueError("BootstrapPF.step needs a PRNG key")
+        n_part = self.num_particles
+        k_noise, k_res = jax.random.split(key)
+        w = model.sample_process_noise(k_noise, t, (n_part,))
+        x = jax.vmap(lambda xi, wi: model.transition(xi, wi, t))(state.particles, w)
+        pred = particle_moments(x, state.log_weights)
+        unnorm = state.log_weights + self._loglik(model, y, x, t)
+        loglik = logsumexp(unnorm)
+        degenerate = ~jnp.isfinite(loglik)
+        lw = unnorm - loglik
+        filt = particle_moments(x, lw)
+        wn = jnp.exp(lw)
+        ess = 1.0 / jnp.sum(wn * wn)
+        if self.ess_threshold >= 1.0:
+            do_resample = jnp.asarray(True)
+        else:
+            do_resample = ess < self.ess_threshold * n_part
+        resampler = RESAMPLERS[self.resampling]
+
+        def _resample(args):
+            xs, lws = args
+            idx = lax.stop_gradient(resampler(k_res, lws))
+            return xs[idx], jnp.full_like(lws, -math.log(n_part))
+
+        if self.ess_threshold == 0.0:  # static: sequential importance sampling, no resampling code
+            do_resample = jnp.asarray(False)
+            new_x, new_lw = x, lw
+        else:  # under vmap the cond becomes a select: the resampling runs for every run and step
+            new_x, new_lw = lax.cond(do_resample, _resample, lambda args: args, (x, lw))
+        if self.estimate == "resampled_mean":
+            filt = particle_moments(new_x, new_lw)
+        info = {"ess": ess, "resampled": do_resample}
+        if self.return_particles:
+            info["particles"] = x
+            info["log_weights"] = lw
+        finite = jnp.all(jnp.isfinite(filt.mean)) & jnp.all(jnp.isfinite(filt.cov)) & ~degenerate
+        result = RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_state)
+        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
+        return ParticleState(new_x, new_lw), out
+
+    def __call__(
+        self,
+        model: NonlinearModel,
+        prior: Gaussian,
+        ys: Float[ArrayLike, "T m"],
+        key: PRNGKeyArray | None = None,
+        *,
+        inputs: Float[ArrayLike, "T p"] | None = None,
+    ) -> FilterResult:
+        """Filter `ys` (`ys[t] = y_{t+1}`) from the prior of `x_0`, drawing from `key`.
+
+        `jax.vmap(pf, in_axes=(None, None, 0, 0))(model, prior, ys_runs, keys)` maps over
+        runs and keys."""
+        if key is None:
+            raise ValueError("BootstrapPF needs a PRNG key: pf(model, prior, ys, jax.random.key(0))")
+        ys, inputs = check_observations(model, prior, ys, inputs, self.model_types)
+        if not model.additive:
+            raise ValueError("BootstrapPF needs a NonlinearModel with additive=True (it weighs by p(y | x) = p_v(y − h(x, t)))")
+        num_steps = ys.shape[0]
+        ys = ys.astype(model.dtype)
+        k_init, k_steps = jax.random.split(key)
+        keys = jax.random.split(k_steps, num_steps)
+
+        def body(carry, xs):
+            state, result = carry
+            t, y, k = xs
+            state, out = self.step(model, state, y, t, None, k)
+            result = RESULTS.where(result == RESULTS.successful, out.result, result)
+            return (state, result), out
+
+        init = self.init(model, prior, k_init)
+        (_, result), outs = lax.scan(body, (init, RESULTS.successful), (jnp.arange(num_steps), ys, keys))
+        res = FilterResult(
+            filtered_means=outs.filtered.mean,
+            filtered_covariances=outs.filtered.cov,
+            predicted_means=outs.predicted.mean,
+            predicted_covariances=outs.predicted.cov,
+            marginal_loglik=jnp.sum(outs.loglik),
+            loglik_increments=outs.loglik,
+            info=outs.info,
+            result=result,
+        )
+        if self.throw:
+            res = result.error_if(res, result != RESULTS.successful)
+        return res
+
+
+__all__ = ["BootstrapPF", "ParticleState", "particle_moments"]

@@ -1,0 +1,168 @@
+"""Resampling schemes of particle filters: `(key, log_weights) -> indices`.
+
+All four schemes draw `N` ancestor indices for `N` particles with static shapes
+(jit/vmap-able) and are safe in float32:
+
+- the weights are normalized in the log domain (`w = exp(ℓ − logsumexp ℓ)`);
+- the cumulative weights `c` are clipped to `[0, 1]` and set to exactly 1 from the
+  last particle of positive weight on, so a sum of weights slightly below (or above)
+  1 never leaves a uniform unassigned nor hands it to a zero-weight particle; every
+  returned index is in `[0, N)`;
+- particle `i` receives the uniforms in `[c_{i-1}, c_i)`, so a particle of zero
+  weight is never selected, not even by a uniform draw of exactly 0.
+
+The sorted-uniform schemes (systematic, stratified) do not search: the number of
+uniforms below each `c_i` has a closed form, so the offspring counts cost one pass
+(`O(N)`), and the indices follow from the counts by a scatter + cumulative sum. The
+multinomial and residual schemes use `jnp.searchsorted` with the `method` that was
+fastest on CPU for `N = 1000` under `vmap` (see `_SEARCH_METHOD`).
+
+References: Douc, Cappé & Moulines (2005), "Comparison of resampling schemes for
+particle filtering"; the algorithms are summarized in `docs/algorithms.md` §G.
+The indices carry no gradient (they are integers): gradients through a resampling
+particle filter ignore the resampling's dependence on the weights.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import logsumexp
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
+
+__all__ = ["multinomial", "systematic", "stratified", "residual", "RESAMPLERS", "normalized_weights", "ess"]
+
+# `jnp.searchsorted` method of the searching schemes. Measured on CPU (N = 1000, vmap
+# over 1000 runs, multinomial): "scan" 41 ms, "scan_unrolled" 79 ms, "sort" 526 ms,
+# "compare_all" 3.7 s; the closed-form systematic counts: 27 ms (a loaded 2-core
+# machine: ratios are meaningful, absolute numbers are not).
+_SEARCH_METHOD = "scan"
+
+
+def _check_log_weights(log_weights) -> Array:
+    lw = jnp.asarray(log_weights)
+    if lw.ndim != 1 or lw.shape[0] == 0:
+        raise ValueError(f"log_weights must have shape (N,) with N >= 1, got shape {tuple(lw.shape)}")
+    if not jnp.issubdtype(lw.dtype, jnp.floating):
+        raise ValueError(f"log_weights must have a floating dtype, got {lw.dtype}")
+    return lw
+
+
+def normalized_weights(log_weights: Float[ArrayLike, " N"]) -> Float[Array, " N"]:
+    """`w̄_i = exp(ℓ_i − logsumexp ℓ)` (sums to 1 up to rounding)."""
+    lw = jnp.asarray(log_weights)
+    return jnp.exp(lw - logsumexp(lw))
+
+
+def ess(log_weights: Float[ArrayLike, " N"]) -> Float[Array, ""]:
+    """Effective sample size `1 / Σ w̄_i²` of (unnormalized) log-weights."""
+    w = normalized_weights(log_weights)
+    return 1.0 / jnp.sum(w * w)
+
+
+def _uniform(key, shape, dtype):
+    """`U[0, 1)` draws (a module-level hook so that tests can force edge values)."""
+    return jax.random.uniform(key, shape, dtype)
+
+
+def _cumulative(lw: Array) -> Array:
+    """Normalized cumulative weights in `[0, 1]`, monotone, exactly 1 from the last
+    particle of positive weight on (so rounding mass never goes to a zero-weight particle)."""
+    w = normalized_weights(lw)
+    one = jnp.asarray(1.0, lw.dtype)
+    idx = jnp.arange(w.shape[0])
+    last = jnp.max(jnp.where(w > 0, idx, 0))
+    return jnp.where(idx >= last, one, jnp.minimum(jnp.cumsum(w), one))
+
+
+def _indices_from_cumulative(cum_counts: Int[Array, " N"]) -> Int[Array, " N"]:
+    """Ancestor indices from `cum_counts[i] = counts_0 + … + counts_i` (in `[0, N]`,
+    last = N): index `i` fills positions `[C_{i-1}, C_i)` of the output, in increasing
+    order. Same as `jnp.repeat(arange(N), counts, total_repeat_length=N)`: a scatter
+    of the block starts and a cumulative sum (`O(N)`)."""
+    n = cum_counts.shape[0]
+    # 0 <= C_i <= N, so the (N + 1)-buffer scatter is in bounds (promise_in_bounds
+    # measured ~2x faster than mode="drop"/"clip" on CPU under vmap).
+    marks = jnp.zeros(n + 1, jnp.int32).at[cum_counts[:-1]].add(1, mode="promise_in_bounds")
+    return jnp.clip(jnp.cumsum(marks[:n]), 0, n - 1).astype(jnp.int32)
+
+
+def _search(c: Array, u: Array) -> Int[Array, " M"]:
+    """Index `i` with `c_{i-1} <= u < c_i` for each uniform (clipped to `[0, N)`)."""
+    idx = jnp.searchsorted(c, u, side="right", method=_SEARCH_METHOD)
+    return jnp.clip(idx, 0, c.shape[0] - 1).astype(jnp.int32)
+
+
+def multinomial(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+    """Multinomial resampling: `N` i.i.d. uniforms `u_j ~ U[0, 1)` by inverse CDF.
+
+    The scheme of the authors' MATLAB particle filter (seed 003). Indices are in the
+    order of the uniforms (not sorted)."""
+    lw = _check_log_weights(log_weights)
+    u = _uniform(key, lw.shape, lw.dtype)
+    return _search(_cumulative(lw), u)
+
+
+def systematic(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+    """Systematic resampling: `u_j = (j + U) / N`, one `U ~ U[0, 1)`.
+
+    Particle `i` gets `⌈N c_i − U⌉ − ⌈N c_{i−1} − U⌉ ∈ {⌊N w_i⌋, ⌈N w_i⌉}` copies
+    (computed in closed form, `O(N)`). Indices are sorted."""
+    lw = _check_log_weights(log_weights)
+    n = lw.shape[0]
+    c = _cumulative(lw)
+    u0 = _uniform(key, (), lw.dtype)
+    below = jnp.clip(jnp.ceil(n * c - u0), 0, n).astype(jnp.int32)  # #{j : (j + U)/N < c_i}
+    # c_i = 1: all N uniforms lie below (N − U rounds to N − 1 in float32 for large N).
+    below = jnp.where(c >= 1, n, below)
+    return _indices_from_cumulative(below)
+
+
+def stratified(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+    """Stratified resampling: `u_j = (j + U_j) / N`, independent `U_j ~ U[0, 1)`.
+
+    `#{j : u_j < c} = ⌊N c⌋ + [U_{⌊N c⌋} < N c − ⌊N c⌋]`, so the counts cost one
+    gather (`O(N)`). Indices are sorted."""
+    lw = _check_log_weights(log_weights)
+    n = lw.shape[0]
+    c = _cumulative(lw)
+    us = _uniform(key, (n,), lw.dtype)
+    x = n * c
+    f = jnp.clip(jnp.floor(x), 0, n)
+    fi = f.astype(jnp.int32)
+    extra = (fi < n) & (us[jnp.minimum(fi, n - 1)] < x - f)
+    below = jnp.where(c >= 1, n, fi + extra.astype(jnp.int32))
+    return _indices_from_cumulative(below)
+
+
+def residual(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+    """Residual resampling: `⌊N w_i⌋` deterministic copies, then `R = N − Σ⌊N w_i⌋`
+    multinomial draws from the residual weights `N w_i − ⌊N w_i⌋` (static shapes:
+    `N` draws are made and only the first `R` are kept). Indices are sorted."""
+    lw = _check_log_weights(log_weights)
+    n = lw.shape[0]
+    w = normalized_weights(lw)
+    nw = n * w
+    floor = jnp.floor(nw)
+    det = floor.astype(jnp.int32)
+    det = jnp.minimum(det, n - jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.cumsum(det)[:-1]]))  # Σ ≤ N
+    det = jnp.maximum(det, 0)
+    rem = n - jnp.sum(det)
+    resid = jnp.maximum(nw - floor, jnp.asarray(0.0, lw.dtype))
+    # Log residual weights (−inf where zero); all zero only if rem == 0, then unused.
+    lr = jnp.where(resid > 0, jnp.log(jnp.where(resid > 0, resid, 1.0)), -jnp.inf)
+    lr = jnp.where(jnp.any(resid > 0), lr, jnp.zeros_like(lr))
+    draws = _search(_cumulative(lr), _uniform(key, (n,), lw.dtype))
+    keep = (jnp.arange(n) < rem).astype(jnp.int32)
+    counts = det + jnp.zeros(n, jnp.int32).at[draws].add(keep)
+    return _indices_from_cumulative(jnp.clip(jnp.cumsum(counts), 0, n))
+
+
+RESAMPLERS: dict[str, Callable[[PRNGKeyArray, Array], Array]] = {
+    "multinomial": multinomial,
+    "systematic": systematic,
+    "stratified": stratified,
+    "residual": residual,
+}
