@@ -26,6 +26,7 @@ from .filters import (
     BootstrapPF as BootstrapPF,
     CovarianceRecursion as CovarianceRecursion,
     DRKF as DRKF,
+    DRParticleFilter as DRParticleFilter,
     EnsembleKF as EnsembleKF,
     FilterResult as FilterResult,
     HuberKF as HuberKF,

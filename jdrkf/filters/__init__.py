@@ -35,3 +35,4 @@ from ._wasserstein_dr import (
 from ._unscented import EnsembleKF as EnsembleKF, UnscentedKF as UnscentedKF, sigma_points as sigma_points
 from ._particle import BootstrapPF as BootstrapPF, ParticleState as ParticleState, particle_moments as particle_moments
 from . import _resampling as resampling  # noqa: F401 (public namespace: resampling.systematic, .stratified, .residual, .multinomial, .ess)
+from ._dr_particle import DRParticleFilter as DRParticleFilter
