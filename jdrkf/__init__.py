@@ -5,6 +5,7 @@ import importlib.metadata
 from . import linalg as linalg, metrics as metrics, sets as sets, tuning as tuning
 from ._gaussian import Gaussian as Gaussian
 from ._models import LinearModel as LinearModel
+from ._multisensor import MultiSensorModel as MultiSensorModel
 from ._nonlinear import NonlinearModel as NonlinearModel
 from ._em import EMResult as EMResult, em_noise_covariances as em_noise_covariances
 from ._closed_loop import ClosedLoopResult as ClosedLoopResult, LQRController as LQRController, closed_loop as closed_loop
@@ -24,6 +25,8 @@ from .filters import (
     AbstractFilter as AbstractFilter,
     BCOTKF as BCOTKF,
     BootstrapPF as BootstrapPF,
+    CKF as CKF,
+    CovarianceIntersection as CovarianceIntersection,
     CovarianceRecursion as CovarianceRecursion,
     DRKF as DRKF,
     DRParticleFilter as DRParticleFilter,
@@ -31,6 +34,7 @@ from .filters import (
     FilterResult as FilterResult,
     HuberKF as HuberKF,
     KalmanFilter as KalmanFilter,
+    MarginalDRKF as MarginalDRKF,
     RBKF as RBKF,
     RESULTS as RESULTS,
     RiskSensitiveKF as RiskSensitiveKF,

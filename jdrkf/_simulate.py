@@ -81,7 +81,9 @@ def simulate(
     - `key`: a PRNG key (required; no default randomness).
     - `model`: the *true* model to simulate (filters may use a different, nominal one): a
       `LinearModel`, or a `NonlinearModel` (then `x_k = f(x_{k-1}, w, t)`, `y_k = h(x_k, v, t)`
-      with the model's own noise laws; the keyword arguments below do not apply).
+      with the model's own noise laws), or a `MultiSensorModel` (sensor noises correlated with
+      the previous process noise, eq. 34 of seed 002); for these two the keyword arguments
+      below do not apply.
     - `prior`: law of `x_0`: a `jdrkf.Gaussian` or any noise law (e.g. `UQuadraticNoise`).
     - `process_noise`, `measurement_noise`: true laws of `w` and `v`; by default
       Gaussian with the model's (possibly time-varying) means and covariances.
@@ -95,15 +97,19 @@ def simulate(
     """
     if key is None:
         raise ValueError("simulate needs a PRNG key, e.g. jax.random.key(0)")
-    from ._nonlinear import NonlinearModel, _simulate_nonlinear  # noqa: PLC0415 (they import Trajectories from here)
+    from ._nonlinear import NonlinearModel, _simulate_nonlinear  # noqa: PLC0415 (these modules import Trajectories from here)
 
-    if isinstance(model, NonlinearModel):
+    from ._multisensor import MultiSensorModel, _simulate_multisensor  # noqa: PLC0415
+
+    if isinstance(model, (NonlinearModel, MultiSensorModel)):
         extra = [n for n, v in (("process_noise", process_noise), ("measurement_noise", measurement_noise), ("inputs", inputs), ("transition_perturbation", transition_perturbation)) if v is not None]
         if extra:
-            raise ValueError(f"{', '.join(extra)} cannot be given for a jdrkf.NonlinearModel: its noise laws are fields of the model, and it takes no inputs")
+            raise ValueError(f"{', '.join(extra)} cannot be given for a jdrkf.{type(model).__name__}: its noise laws are fields of the model, and it takes no inputs")
+        if isinstance(model, MultiSensorModel):
+            return _simulate_multisensor(key, model, prior, num_steps, num_runs)
         return _simulate_nonlinear(key, model, prior, num_steps, num_runs)
     if not isinstance(model, LinearModel):
-        raise ValueError(f"model must be a jdrkf.LinearModel or jdrkf.NonlinearModel, got {type(model).__name__}")
+        raise ValueError(f"model must be a jdrkf.LinearModel, NonlinearModel or MultiSensorModel, got {type(model).__name__}")
     num_steps, num_runs = int(num_steps), int(num_runs)
     if num_steps < 1 or num_runs < 1:
         raise ValueError(f"num_steps and num_runs must be positive, got {num_steps} and {num_runs}")

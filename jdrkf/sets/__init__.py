@@ -2,6 +2,12 @@
 
 from ._base import AbstractAmbiguitySet as AbstractAmbiguitySet
 from ._divergence import KL as KL
+from ._marginal import (
+    MarginalKL as MarginalKL,
+    MarginalMoment as MarginalMoment,
+    MarginalWorstCase as MarginalWorstCase,
+    marginal_mmse as marginal_mmse,
+)
 from ._maxent import (
     MaxEntContinuous as MaxEntContinuous,
     MaxEntResult as MaxEntResult,
