@@ -2,6 +2,7 @@
 
 import importlib.metadata
 
+from . import _cpu_pool as _cpu_pool  # first: sets PJRT_NPROC before any JAX computation (see its docstring)
 from . import linalg as linalg, metrics as metrics, sets as sets, tuning as tuning
 from ._gaussian import Gaussian as Gaussian
 from ._models import LinearModel as LinearModel

@@ -1,4 +1,7 @@
 import gc
+import os
+
+os.environ.setdefault("PJRT_NPROC", "16")  # before any JAX computation: see jdrkf/_cpu_pool.py
 
 import jax
 import numpy as np
