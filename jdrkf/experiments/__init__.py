@@ -1,6 +1,14 @@
 """Paper reproductions, one module per paper, registered by name for `jdrkf reproduce`."""
 
-from . import jang as jang, li_convergence as li_convergence, li_variational as li_variational, wang_ye as wang_ye, wang_ye_sweeps as wang_ye_sweeps
+from . import (
+    chen_fusion as chen_fusion,
+    jang as jang,
+    li_convergence as li_convergence,
+    li_variational as li_variational,
+    wang_nonlinear as wang_nonlinear,
+    wang_ye as wang_ye,
+    wang_ye_sweeps as wang_ye_sweeps,
+)
 from ._registry import (
     EXPERIMENTS as EXPERIMENTS,
     Experiment as Experiment,
