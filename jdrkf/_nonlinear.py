@@ -13,8 +13,8 @@ from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from . import linalg
 from ._gaussian import Gaussian
-from ._noise import AbstractNoise, GaussianNoise
-from ._simulate import Trajectories
+from ._noise import AbstractNoise
+from ._simulate import Trajectories, _check_law
 from ._validation import as_float_array, check_covariance
 
 
@@ -36,20 +36,6 @@ def _check_callable_output(name, fn, args, signature, expected_shape, dtype):
         raise ValueError(f"{name}{signature} must return an array of shape {expected_shape}, got {got}")
     if out.dtype != dtype:
         raise ValueError(f"{name}{signature} returns dtype {out.dtype} but the model has dtype {dtype} (that of Q and R)")
-
-
-def _check_noise_law(name: str, law, dim: int, dtype) -> AbstractNoise | None:
-    if law is None:
-        return None
-    if isinstance(law, Gaussian):
-        law = GaussianNoise(law.cov, law.mean)
-    if not isinstance(law, AbstractNoise):
-        raise ValueError(f"{name} must be a jdrkf noise law (e.g. jdrkf.GaussianNoise) or a jdrkf.Gaussian, got {type(law).__name__}")
-    if law.dim != dim:
-        raise ValueError(f"{name} draws vectors of dimension {law.dim} but {dim} is needed")
-    if law.mean.dtype != dtype:
-        raise ValueError(f"{name} has dtype {law.mean.dtype} but the model has dtype {dtype}; build both in one precision")
-    return law
 
 
 def _gaussian_logpdf(resid: Float[Array, " m"], cov: Float[Array, "m m"]) -> Float[Array, ""]:
@@ -148,8 +134,8 @@ class NonlinearModel(eqx.Module):
             _check_callable_output("f", f, (x, w, t), "(x, w, t)", (n,), dtype)
             _check_callable_output("h", h, (x, v, t), "(x, v, t)", (m,), dtype)
         self.f, self.h, self.Q, self.R = f, h, Q, R
-        self.process_noise = _check_noise_law("process_noise", process_noise, q, dtype)
-        self.measurement_noise = _check_noise_law("measurement_noise", measurement_noise, r, dtype)
+        self.process_noise = _check_law("process_noise", process_noise, q, dtype)
+        self.measurement_noise = _check_law("measurement_noise", measurement_noise, r, dtype)
         self.additive, self.state_dim, self.obs_dim = additive, n, m
 
     @property
@@ -263,7 +249,7 @@ def _simulate_nonlinear(
     if num_steps < 1 or num_runs < 1:
         raise ValueError(f"num_steps and num_runs must be positive, got {num_steps} and {num_runs}")
     model.check_horizon(num_steps)
-    prior = _check_noise_law("prior", prior, model.state_dim, model.dtype)
+    prior = _check_law("prior", prior, model.state_dim, model.dtype)
     return _simulate_jit(key, model, prior, num_steps, num_runs)
 
 
