@@ -3,7 +3,9 @@
 All four schemes draw `N` ancestor indices for `N` particles with static shapes
 (jit/vmap-able) and are safe in float32:
 
-- the weights are normalized in the log domain (`w = exp(ℓ − logsumexp ℓ)`);
+- the weights are exponentiated relative to their maximum (`exp(ℓ − max ℓ)`, so any
+  finite log-weights work, normalized or not) and the cumulative weights are divided
+  by their total;
 - the cumulative weights `c` are clipped to `[0, 1]` and set to exactly 1 from the
   last particle of positive weight on, so a sum of weights slightly below (or above)
   1 never leaves a uniform unassigned nor hands it to a zero-weight particle; every
@@ -29,6 +31,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+from jax import lax
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
@@ -70,11 +73,22 @@ def _uniform(key, shape, dtype):
 def _cumulative(lw: Array) -> Array:
     """Normalized cumulative weights in `[0, 1]`, monotone, exactly 1 from the last
     particle of positive weight on (so rounding mass never goes to a zero-weight particle)."""
-    w = normalized_weights(lw)
+    # One exp pass: cumulate `exp(ℓ − max ℓ)` and divide by the total (instead of
+    # normalizing by log-sum-exp first; same values up to rounding, ~2x fewer passes).
+    m = jnp.max(lw)
+    e = jnp.exp(lw - jnp.where(jnp.isfinite(m), m, jnp.zeros_like(m)))
+    s = jnp.cumsum(e)
     one = jnp.asarray(1.0, lw.dtype)
-    idx = jnp.arange(w.shape[0])
-    last = jnp.max(jnp.where(w > 0, idx, 0))
-    return jnp.where(idx >= last, one, jnp.minimum(jnp.cumsum(w), one))
+    idx = jnp.arange(e.shape[0], dtype=jnp.int32)
+    last = jnp.max(jnp.where(e > 0, idx, 0))
+    return jnp.where(idx >= last, one, jnp.minimum(s / s[-1], one))
+
+
+def _int_cumsum(a: Int[Array, " N"]) -> Int[Array, " N"]:
+    """Inclusive cumulative sum of integers. Exact in any summation order, so the
+    log-depth `associative_scan` is used: it measured ~1.5x faster than `jnp.cumsum`
+    (XLA's reduce-window rewrite) on CPU under `vmap` for `N = 1000`."""
+    return lax.associative_scan(jnp.add, a)
 
 
 def _indices_from_cumulative(cum_counts: Int[Array, " N"]) -> Int[Array, " N"]:
@@ -86,7 +100,7 @@ def _indices_from_cumulative(cum_counts: Int[Array, " N"]) -> Int[Array, " N"]:
     # 0 <= C_i <= N, so the (N + 1)-buffer scatter is in bounds (promise_in_bounds
     # measured ~2x faster than mode="drop"/"clip" on CPU under vmap).
     marks = jnp.zeros(n + 1, jnp.int32).at[cum_counts[:-1]].add(1, mode="promise_in_bounds")
-    return jnp.clip(jnp.cumsum(marks[:n]), 0, n - 1).astype(jnp.int32)
+    return jnp.clip(_int_cumsum(marks[:n]), 0, n - 1).astype(jnp.int32)
 
 
 def _search(c: Array, u: Array) -> Int[Array, " M"]:
@@ -147,7 +161,7 @@ def residual(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Arra
     nw = n * w
     floor = jnp.floor(nw)
     det = floor.astype(jnp.int32)
-    det = jnp.minimum(det, n - jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.cumsum(det)[:-1]]))  # Σ ≤ N
+    det = jnp.minimum(det, n - jnp.concatenate([jnp.zeros((1,), jnp.int32), _int_cumsum(det)[:-1]]))  # Σ ≤ N
     det = jnp.maximum(det, 0)
     rem = n - jnp.sum(det)
     resid = jnp.maximum(nw - floor, jnp.asarray(0.0, lw.dtype))
@@ -157,7 +171,7 @@ def residual(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Arra
     draws = _search(_cumulative(lr), _uniform(key, (n,), lw.dtype))
     keep = (jnp.arange(n) < rem).astype(jnp.int32)
     counts = det + jnp.zeros(n, jnp.int32).at[draws].add(keep)
-    return _indices_from_cumulative(jnp.clip(jnp.cumsum(counts), 0, n))
+    return _indices_from_cumulative(jnp.clip(_int_cumsum(counts), 0, n))
 
 
 RESAMPLERS: dict[str, Callable[[PRNGKeyArray, Array], Array]] = {
