@@ -117,15 +117,21 @@ class AbstractFilter(eqx.Module):
     `FilterResult.result` instead.
 
     `model_types` (class variable): the model classes `__call__` accepts (default
-    `LinearModel`; multi-sensor and nonlinear filters override it).
+    `LinearModel`; multi-sensor and nonlinear filters override it). `stochastic_init`
+    (class variable): `init(model, prior, key)` draws (particle filters); `__call__` then
+    requires a key and uses `k_init, k_steps = split(key)`.
     """
 
     throw: eqx.AbstractVar[bool]
     model_types: ClassVar[tuple[type, ...]] = (LinearModel,)
+    stochastic_init: ClassVar[bool] = False
 
     @abc.abstractmethod
     def init(self, model: LinearModel, prior: Gaussian) -> PyTree:
         """Filter state before the first step (from the law of `x_0`)."""
+
+    def check_model(self, model: Any) -> None:
+        """Eager, filter-specific checks of `model` in `__call__` (default: none)."""
 
     @abc.abstractmethod
     def step(
@@ -154,7 +160,15 @@ class AbstractFilter(eqx.Module):
         maps over runs and keys; deterministic filters ignore it.
         """
         ys, inputs = check_observations(model, prior, ys, inputs, self.model_types)
+        self.check_model(model)
         num_steps = ys.shape[0]
+        if self.stochastic_init:
+            if key is None:
+                raise ValueError(f"{type(self).__name__} needs a PRNG key: flt(model, prior, ys, jax.random.key(0))")
+            k_init, key = jax.random.split(key)
+            state0 = self.init(model, prior, k_init)
+        else:
+            state0 = self.init(model, prior)
         keys = None if key is None else jax.random.split(key, num_steps)
 
         def body(carry, xs):
@@ -165,7 +179,7 @@ class AbstractFilter(eqx.Module):
             return (state, result), out
 
         xs = (jnp.arange(num_steps), ys, inputs, keys)
-        (_, result), outs = lax.scan(body, (self.init(model, prior), RESULTS.successful), xs)
+        (_, result), outs = lax.scan(body, (state0, RESULTS.successful), xs)
         res = FilterResult(
             filtered_means=outs.filtered.mean,
             filtered_covariances=outs.filtered.cov,

@@ -43,7 +43,7 @@ from .._nonlinear import NonlinearModel
 from .._validation import as_float_array, is_concrete
 from ..sets._maxent import maxent_kl_solve, maxent_transport_solve, maxent_wasserstein_continuous
 from . import _resampling
-from ._base import RESULTS, AbstractFilter, FilterResult, StepOutput, check_observations
+from ._base import RESULTS, AbstractFilter, StepOutput
 from ._particle import ParticleState, _gaussian_loglik_particles, particle_moments
 
 __all__ = ["DRParticleFilter"]
@@ -237,6 +237,7 @@ class DRParticleFilter(AbstractFilter):
     """
 
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
+    stochastic_init: ClassVar[bool] = True
 
     prior_radius: Float[Array, ""]
     theta: Float[Array, ""]
@@ -463,51 +464,9 @@ class DRParticleFilter(AbstractFilter):
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return ParticleState(new_x, new_lw), out
 
-    def __call__(
-        self,
-        model: NonlinearModel,
-        prior: Gaussian,
-        ys: Float[ArrayLike, "T m"],
-        key: PRNGKeyArray | None = None,
-        *,
-        inputs: Float[ArrayLike, "T p"] | None = None,
-    ) -> FilterResult:
-        """Filter `ys` (`ys[t] = y_{t+1}`) from the prior of `x_0`, drawing from `key`
-        (keys as `BootstrapPF`: `k_init, k_steps = split(key)`, step `t` uses
-        `split(k_steps, T)[t]`). `jax.vmap(flt, in_axes=(None, None, 0, 0))` maps over
-        runs and keys."""
-        if key is None:
-            raise ValueError("DRParticleFilter needs a PRNG key: flt(model, prior, ys, jax.random.key(0))")
-        ys, inputs = check_observations(model, prior, ys, inputs, self.model_types)
+    def check_model(self, model: NonlinearModel) -> None:
         if self.likelihood == "inflate" and not model.additive:
             raise ValueError(
                 "likelihood='inflate' (Method 3) needs additive measurement noise (model.additive=True); "
                 "use likelihood='wasserstein' or 'wasserstein_augmented' (Methods 4-5) for additive=False"
             )
-        num_steps = ys.shape[0]
-        ys = ys.astype(model.dtype)
-        k_init, k_steps = jax.random.split(key)
-        keys = jax.random.split(k_steps, num_steps)
-
-        def body(carry, xs):
-            state, result = carry
-            t, y, k = xs
-            state, out = self.step(model, state, y, t, None, k)
-            result = RESULTS.where(result == RESULTS.successful, out.result, result)
-            return (state, result), out
-
-        init = self.init(model, prior, k_init)
-        (_, result), outs = lax.scan(body, (init, RESULTS.successful), (jnp.arange(num_steps), ys, keys))
-        res = FilterResult(
-            filtered_means=outs.filtered.mean,
-            filtered_covariances=outs.filtered.cov,
-            predicted_means=outs.predicted.mean,
-            predicted_covariances=outs.predicted.cov,
-            marginal_loglik=jnp.sum(outs.loglik),
-            loglik_increments=outs.loglik,
-            info=outs.info,
-            result=result,
-        )
-        if self.throw:
-            res = result.error_if(res, result != RESULTS.successful)
-        return res

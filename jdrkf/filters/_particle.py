@@ -11,12 +11,12 @@ import jax.numpy as jnp
 from jax import lax
 from jax.scipy.linalg import solve_triangular
 from jax.scipy.special import logsumexp
-from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import linalg
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
-from ._base import RESULTS, AbstractFilter, FilterResult, StepOutput, check_observations
+from ._base import RESULTS, AbstractFilter, StepOutput
 from ._resampling import RESAMPLERS
 
 _ESTIMATES = ("weighted_mean", "resampled_mean")
@@ -124,6 +124,7 @@ class BootstrapPF(AbstractFilter):
     nan_as_missing: bool = eqx.field(default=True, static=True, kw_only=True)
 
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
+    stochastic_init: ClassVar[bool] = True
 
     def __check_init__(self):
         n = self.num_particles
@@ -196,51 +197,9 @@ class BootstrapPF(AbstractFilter):
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return ParticleState(new_x, new_lw), out
 
-    def __call__(
-        self,
-        model: NonlinearModel,
-        prior: Gaussian,
-        ys: Float[ArrayLike, "T m"],
-        key: PRNGKeyArray | None = None,
-        *,
-        inputs: Float[ArrayLike, "T p"] | None = None,
-    ) -> FilterResult:
-        """Filter `ys` (`ys[t] = y_{t+1}`) from the prior of `x_0`, drawing from `key`.
-
-        `jax.vmap(pf, in_axes=(None, None, 0, 0))(model, prior, ys_runs, keys)` maps over
-        runs and keys."""
-        if key is None:
-            raise ValueError("BootstrapPF needs a PRNG key: pf(model, prior, ys, jax.random.key(0))")
-        ys, inputs = check_observations(model, prior, ys, inputs, self.model_types)
+    def check_model(self, model: NonlinearModel) -> None:
         if not model.additive:
             raise ValueError("BootstrapPF needs a NonlinearModel with additive=True (it weighs by p(y | x) = p_v(y − h(x, t)))")
-        num_steps = ys.shape[0]
-        ys = ys.astype(model.dtype)
-        k_init, k_steps = jax.random.split(key)
-        keys = jax.random.split(k_steps, num_steps)
-
-        def body(carry, xs):
-            state, result = carry
-            t, y, k = xs
-            state, out = self.step(model, state, y, t, None, k)
-            result = RESULTS.where(result == RESULTS.successful, out.result, result)
-            return (state, result), out
-
-        init = self.init(model, prior, k_init)
-        (_, result), outs = lax.scan(body, (init, RESULTS.successful), (jnp.arange(num_steps), ys, keys))
-        res = FilterResult(
-            filtered_means=outs.filtered.mean,
-            filtered_covariances=outs.filtered.cov,
-            predicted_means=outs.predicted.mean,
-            predicted_covariances=outs.predicted.cov,
-            marginal_loglik=jnp.sum(outs.loglik),
-            loglik_increments=outs.loglik,
-            info=outs.info,
-            result=result,
-        )
-        if self.throw:
-            res = result.error_if(res, result != RESULTS.successful)
-        return res
 
 
 __all__ = ["BootstrapPF", "ParticleState", "particle_moments"]
