@@ -31,10 +31,10 @@ def test_tracking_truth_turns_at_speed_two_and_sensor_moves_up():
 def test_growth_report_protocols():
     rep = wn.run_growth(runs=3, seed=0, particles=(50,), thetas=(5.0,))
     metrics = {r.metric for r in rep.rows}
-    assert metrics == {f"RTAMSE [{c}, {p}]" for c in ("mismatch", "exact") for p in ("honest", "authors")}
+    assert metrics == {f"RTAMSE [{c}, {p}, N=50]" for c in ("mismatch", "exact") for p in ("honest", "authors")}
     for r in rep.rows:
         assert np.isfinite(r.mean) and r.runs == 3
-        assert r.paper == wn.PAPER_GROWTH[r.metric.split("[")[1].split(",")[0]][r.filter.split()[0]][0]
+        assert r.paper == wn.PAPER_GROWTH[r.metric.split("[")[1].split(",")[0]][r.filter][0]
         if r.filter.startswith("UKF") and "authors" in r.metric:
             assert r.ci95[0] == pytest.approx(r.ci95[1])  # one trajectory, deterministic filter
         if r.filter.startswith("PF") and "honest" in r.metric:

@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import metrics
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel, _simulate_nonlinear
 from ..filters._dr_particle import DRParticleFilter
@@ -137,13 +138,13 @@ def run_growth(runs: int = 100, seed: int = 0, progress: bool = False, curves: b
     key = jax.random.key(seed)
     rows, notes, sweeps = [], [], {}
     ukf = UnscentedKF(sigma_points="simon", redraw=False, throw=False)
+    paired = {(c, p): [] for c in PAPER_GROWTH for p in ("honest", "authors")}
     t0 = time.perf_counter()
     for case, table in PAPER_GROWTH.items():
         filt_model = models["nominal"] if case == "mismatch" else models["true"]
         for protocol in ("honest", "authors"):
             states, ys = _protocol_data(jax.random.fold_in(key, 0), models["true"], _point_mass(1), GROWTH_STEPS, runs, protocol)
             keys = jax.random.split(jax.random.fold_in(key, 1), runs)
-            metric = f"RTAMSE [{case}, {protocol}]"
             u = _rtamse(states, _run_batch(ukf, filt_model, prior, ys, keys), [0])
             sw = {"PF": [], "RPF": [], "UKF": []}
             for n in particles:
@@ -151,11 +152,15 @@ def run_growth(runs: int = 100, seed: int = 0, progress: bool = False, curves: b
                 vals["RPF"] = _rtamse(states, _run_batch(_rpf(n), filt_model, prior, ys, keys), [0])
                 paper_j = PARTICLES.index(n) if n in PARTICLES else None
                 for name, v in vals.items():
-                    rows.append(Row.from_values(f"{name} N={n}", metric, None if paper_j is None else table[name][paper_j], v))
+                    rows.append(Row.from_values(name, f"RTAMSE [{case}, {protocol}, N={n}]", None if paper_j is None else table[name][paper_j], v))
                     sw[name].append(v)
-                wins = float(np.mean(vals["RPF"] < vals["PF"]))
+                diff, (lo, hi) = metrics.mean_ci(vals["RPF"] - vals["PF"])
+                paired[case, protocol].append((lo, hi))
                 if n == particles[-1] or n == 200:
-                    notes.append(f"[{case}, {protocol}] N = {n}: RPF < PF in {100 * wins:.0f}% of runs (paired mean difference {np.mean(vals['RPF'] - vals['PF']):+.3f}).")
+                    notes.append(
+                        f"[{case}, {protocol}] N = {n}: RPF − PF paired difference {diff:+.3f} (95% CI [{lo:+.3f}, {hi:+.3f}]); "
+                        f"RPF better in {100 * float(np.mean(vals['RPF'] < vals['PF'])):.0f}% of runs."
+                    )
             sweeps[f"growth-{case}-{protocol}"] = Sweep(
                 "particles N", np.asarray(particles), {k: np.stack(v, axis=1) for k, v in sw.items()},
                 paper={k: np.asarray([table[k][PARTICLES.index(n)] if n in PARTICLES else np.nan for n in particles]) for k in sw},
@@ -168,6 +173,18 @@ def run_growth(runs: int = 100, seed: int = 0, progress: bool = False, curves: b
     sweeps["growth-theta"] = Sweep("θ (likelihood inflation, Method 3)", np.asarray(thetas), {"RPF N=200": vals}, y_label="averaged RTAMSE")
     best = thetas[int(np.argmin(vals.mean(0)))]
     notes.append(f"Fig. 3 (θ sweep, N = 200, mismatch, honest runs): minimum mean RTAMSE {vals.mean(0).min():.3f} at θ = {best:g}; θ = 5 gives {vals.mean(0)[list(thetas).index(5.0)]:.3f} (the paper: θ = 2.5 is better than 5)." if 5.0 in thetas else f"θ sweep minimum at θ = {best:g}.")
+    better = sum(hi < 0 for hi in (h for _, h in paired["mismatch", "honest"]))
+    worse = sum(lo > 0 for lo in (lo for lo, _ in paired["mismatch", "honest"]))
+    notes.append(
+        f"Under the measurement mismatch (honest runs) the RPF is significantly better than the PF at {better} of {len(particles)} "
+        f"particle counts and significantly worse at {worse}; elsewhere the two tie. Why we differ from Table I, where the RPF "
+        "wins at every N: (i) the paper's numbers come from ONE trajectory (MATLAB rng(45), not reproducible here) and the "
+        "RTAMSE of this bimodal model (y = x²/20 cannot tell the sign of x) varies strongly between trajectories — our "
+        "one-trajectory rows move by several tenths with the trajectory, as much as the paper's RPF–PF gaps; (ii) the "
+        "mismatch 0.5 sin x (at most 0.5) is small against the measurement noise (std 1), so the PF's likelihood is only "
+        "mildly wrong while θ = 5 throws information away — the θ sweep agrees with the paper that θ = 2.5 beats θ = 5. "
+        "The UKF is worst by far in every setting, as in the paper; its level depends on the trajectory."
+    )
     notes.append(
         f"{runs} runs per protocol; honest: a new trajectory per run (key fold_in(seed, 0)); authors: trajectory 0 for all episodes. "
         f"Filter keys split from fold_in(seed, 1). Wall time {time.perf_counter() - t0:.0f} s."
