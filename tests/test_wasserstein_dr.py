@@ -219,6 +219,7 @@ def test_ill_conditioned_em_nominal_stays_on_the_convex_branch():
     assert np.max(np.abs(np.linalg.eigvals(a @ (np.eye(4) - np.asarray(sol.gain) @ c)))) < 1
 
 
+@pytest.mark.slow  # ~20 s (compiles jit x vmap x grad); gradients are also checked by test_gradients_vs_finite_differences
 def test_time_varying_filter_jit_vmap_grad(getkey):
     # vmap over runs (n = 3: unrolled solves, no batched LAPACK) equals single runs, and the
     # gradient of the mean filtered trace in θx matches central finite differences.
