@@ -138,7 +138,7 @@ def bench_cvxpy(insts, p, kind):
     plain = []
     for cov, params in insts:
         t = time.perf_counter()
-        v, _ = O.solve_marginal_sdp(cov, 3, dims, kind, params)
+        v, _ = O.solve_marginal_sdp(cov, 3, dims, kind, params, strict=False)  # p = 10 ends 'optimal_inaccurate' at times
         plain.append((v, time.perf_counter() - t))
     t = time.perf_counter()
     prob, pars = _dpp_problem(p, kind)

@@ -30,11 +30,12 @@ def _lmi(expr):
     return 0.5 * (expr + expr.T) >> 0
 
 
-def solve_marginal_sdp(cov, n, dims, kind, params):
+def solve_marginal_sdp(cov, n, dims, kind, params, strict=True):
     """Optimal value and worst-case S of the marginal problem.
 
     kind 'moment': params = (gamma1, gamma2), arrays of length p;
-    kind 'kl': params = (c,), the KL radii (½ factor included)."""
+    kind 'kl': params = (c,), the KL radii (½ factor included). `strict=False` accepts
+    Clarabel's 'optimal_inaccurate' (benchmarks at p = 10; tests keep strict)."""
     cov = _sym(cov)
     d = cov.shape[0]
     S = cp.Variable((d, d), symmetric=True)
@@ -69,7 +70,8 @@ def solve_marginal_sdp(cov, n, dims, kind, params):
             if prob.status == cp.OPTIMAL:
                 break
         else:
-            raise RuntimeError(f"Clarabel status {prob.status!r}")
+            if strict or prob.status != cp.OPTIMAL_INACCURATE:
+                raise RuntimeError(f"Clarabel status {prob.status!r}")
     return float(prob.value), _sym(S.value)
 
 
