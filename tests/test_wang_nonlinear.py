@@ -28,6 +28,7 @@ def test_tracking_truth_turns_at_speed_two_and_sensor_moves_up():
     assert np.allclose(y, [5.0, 0.0], atol=1e-12)
 
 
+@pytest.mark.slow  # ~15 s of compiles; the filters are unit-tested elsewhere
 def test_growth_report_protocols():
     rep = wn.run_growth(runs=3, seed=0, particles=(50,), thetas=(5.0,))
     metrics = {r.metric for r in rep.rows}
