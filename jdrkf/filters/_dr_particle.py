@@ -43,8 +43,8 @@ from .._nonlinear import NonlinearModel
 from .._validation import as_float_array, is_concrete
 from ..sets._maxent import maxent_kl_solve, maxent_transport_solve, maxent_wasserstein_continuous
 from . import _resampling
-from ._base import RESULTS, AbstractFilter, StepOutput
-from ._particle import ParticleState, _gaussian_loglik_particles, particle_moments
+from ._base import AbstractFilter, StepOutput
+from ._particle import ParticleState, _gaussian_loglik_particles, _weigh_and_resample, particle_moments
 
 __all__ = ["DRParticleFilter"]
 
@@ -433,34 +433,12 @@ class DRParticleFilter(AbstractFilter):
                 y_near = jnp.where(observed, nearest, y)
                 ll_near = self._likelihoods(model, x, ys, y_near, t, k_points)
                 ll = jnp.where(outlier, ll_near, ll)
-        # Step 4: weight update.
+        # Steps 4-5: weight update and resampling (as BootstrapPF).
         unnorm = logq + ll
-        loglik = logsumexp(unnorm)
-        degenerate = ~jnp.isfinite(loglik)
-        lw = unnorm - loglik
-        filt = particle_moments(x, lw)
-        wn = jnp.exp(lw)
-        ess = 1.0 / jnp.sum(wn * wn)
-        # Step 5: resampling (as BootstrapPF).
-        if self.ess_threshold >= 1.0:
-            do_resample = jnp.asarray(True)
-        else:
-            do_resample = ess < self.ess_threshold * n_part
-        resampler = _resampling.RESAMPLERS[self.resampling]
-
-        def _resample(args):
-            xs, lws = args
-            idx = lax.stop_gradient(resampler(k_res, lws))
-            return xs[idx], jnp.full_like(lws, -math.log(n_part))
-
-        new_x, new_lw = lax.cond(do_resample, _resample, lambda args: args, (x, lw))
-        if self.estimate == "resampled_mean":
-            filt = particle_moments(new_x, new_lw)
+        new_x, new_lw, lw, filt, loglik, ess, do_resample, result = _weigh_and_resample(self, x, unnorm, k_res)
         info = {"ess": ess, "resampled": do_resample, "outlier": outlier, "max_loglik": max_ll}
         if self.return_particles:
             info.update(particles=x, prior_log_weights=logq, log_weights=lw)
-        finite = jnp.all(jnp.isfinite(filt.mean)) & jnp.all(jnp.isfinite(filt.cov)) & ~degenerate
-        result = RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_state)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return ParticleState(new_x, new_lw), out
 

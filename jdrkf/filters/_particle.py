@@ -164,36 +164,11 @@ class BootstrapPF(AbstractFilter):
         x = jax.vmap(lambda xi, wi: model.transition(xi, wi, t))(state.particles, w)
         pred = particle_moments(x, state.log_weights)
         unnorm = state.log_weights + self._loglik(model, y, x, t)
-        loglik = logsumexp(unnorm)
-        degenerate = ~jnp.isfinite(loglik)
-        lw = unnorm - loglik
-        filt = particle_moments(x, lw)
-        wn = jnp.exp(lw)
-        ess = 1.0 / jnp.sum(wn * wn)
-        if self.ess_threshold >= 1.0:
-            do_resample = jnp.asarray(True)
-        else:
-            do_resample = ess < self.ess_threshold * n_part
-        resampler = RESAMPLERS[self.resampling]
-
-        def _resample(args):
-            xs, lws = args
-            idx = lax.stop_gradient(resampler(k_res, lws))
-            return xs[idx], jnp.full_like(lws, -math.log(n_part))
-
-        if self.ess_threshold == 0.0:  # static: sequential importance sampling, no resampling code
-            do_resample = jnp.asarray(False)
-            new_x, new_lw = x, lw
-        else:  # under vmap the cond becomes a select: the resampling runs for every run and step
-            new_x, new_lw = lax.cond(do_resample, _resample, lambda args: args, (x, lw))
-        if self.estimate == "resampled_mean":
-            filt = particle_moments(new_x, new_lw)
+        new_x, new_lw, lw, filt, loglik, ess, do_resample, result = _weigh_and_resample(self, x, unnorm, k_res)
         info = {"ess": ess, "resampled": do_resample}
         if self.return_particles:
             info["particles"] = x
             info["log_weights"] = lw
-        finite = jnp.all(jnp.isfinite(filt.mean)) & jnp.all(jnp.isfinite(filt.cov)) & ~degenerate
-        result = RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_state)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return ParticleState(new_x, new_lw), out
 
@@ -203,3 +178,36 @@ class BootstrapPF(AbstractFilter):
 
 
 __all__ = ["BootstrapPF", "ParticleState", "particle_moments"]
+
+
+def _weigh_and_resample(flt, x, unnorm, key):
+    """The end of a particle-filter step (BootstrapPF and DRParticleFilter): normalize the
+    log-weights `unnorm` (log-sum-exp = the log-likelihood increment), the weighted moments,
+    the ESS, resampling with `flt.resampling` when ESS < `flt.ess_threshold`·N (indices under
+    `stop_gradient`), and the result code. Returns `(new_particles, new_log_weights,
+    log_weights, filtered, loglik, ess, resampled, result)`."""
+    n_part = flt.num_particles
+    loglik = logsumexp(unnorm)
+    degenerate = ~jnp.isfinite(loglik)
+    lw = unnorm - loglik
+    filt = particle_moments(x, lw)
+    wn = jnp.exp(lw)
+    ess = 1.0 / jnp.sum(wn * wn)
+    resampler = RESAMPLERS[flt.resampling]
+
+    def _resample(args):
+        xs, lws = args
+        idx = lax.stop_gradient(resampler(key, lws))
+        return xs[idx], jnp.full_like(lws, -math.log(n_part))
+
+    if flt.ess_threshold == 0.0:  # static: sequential importance sampling, no resampling code
+        do_resample = jnp.asarray(False)
+        new_x, new_lw = x, lw
+    else:  # under vmap the cond becomes a select: the resampling runs for every run and step
+        do_resample = jnp.asarray(True) if flt.ess_threshold >= 1.0 else ess < flt.ess_threshold * n_part
+        new_x, new_lw = lax.cond(do_resample, _resample, lambda args: args, (x, lw))
+    if flt.estimate == "resampled_mean":
+        filt = particle_moments(new_x, new_lw)
+    finite = jnp.all(jnp.isfinite(filt.mean)) & jnp.all(jnp.isfinite(filt.cov)) & ~degenerate
+    result = RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_state)
+    return new_x, new_lw, lw, filt, loglik, ess, do_resample, result
