@@ -38,25 +38,28 @@ Metric = Callable[[Trajectories, FilterResult], Array]
 DEFAULT_METRICS: dict[str, Metric] = {"rmse": lambda traj, res: _metrics.rmse(traj.states, res.filtered_means)}
 
 
-def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, metrics):
-    def one(traj: Trajectories, key):
-        out = {}
-        for name, flt in filters.items():
-            mdl, ys = model, traj.observations
-            if isinstance(flt, Clairvoyant):
-                if flt.true_model:
-                    mdl = true_model
-                    if traj.transition_matrices is not None:
-                        mdl = eqx.tree_at(lambda mm: mm.F, mdl, traj.transition_matrices)
-                if flt.clean:
-                    ys = traj.clean_observations
-                flt = flt.filter
-            res = flt(mdl, prior, ys, key)
-            out[name] = {mname: fn(traj, res) for mname, fn in metrics.items()}
-            out[name]["success"] = res.result == RESULTS.successful
-        return out
+def _run_per_model(flt, model, prior, transition_matrices, ys, keys):
+    """`flt` on runs that each have their own transition matrices (a clairvoyant filter)."""
+    return jax.vmap(lambda F, y, k: flt(eqx.tree_at(lambda mm: mm.F, model, F), prior, y, k))(transition_matrices, ys, keys)
 
-    return jax.vmap(one)(chunk, keys)
+
+def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, metrics):
+    out = {}
+    for name, flt in filters.items():
+        mdl, ys, per_run_F = model, chunk.observations, None
+        if isinstance(flt, Clairvoyant):
+            if flt.true_model:
+                mdl, per_run_F = true_model, chunk.transition_matrices
+            if flt.clean:
+                ys = chunk.clean_observations
+            flt = flt.filter
+        if per_run_F is None:  # one model for all runs: `batch` shares what it can across them
+            res = flt.batch(mdl, prior, ys, keys)
+        else:
+            res = _run_per_model(flt, mdl, prior, per_run_F, ys, keys)
+        vals = jax.vmap(lambda traj, r: {mname: fn(traj, r) for mname, fn in metrics.items()})(chunk, res)
+        out[name] = {**vals, "success": res.result == RESULTS.successful}
+    return out
 
 
 _run_chunk_jit = eqx.filter_jit(_run_chunk)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+import copy
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -119,12 +120,15 @@ class AbstractFilter(eqx.Module):
     `model_types` (class variable): the model classes `__call__` accepts (default
     `LinearModel`; multi-sensor and nonlinear filters override it). `stochastic_init`
     (class variable): `init(model, prior, key)` draws (particle filters); `__call__` then
-    requires a key and uses `k_init, k_steps = split(key)`.
+    requires a key and uses `k_init, k_steps = split(key)`. `shared_covariance` (class
+    variable): the covariance recursion depends on which observations are missing but
+    not on their values, so `batch` computes it once for all runs when none is missing.
     """
 
     throw: eqx.AbstractVar[bool]
     model_types: ClassVar[tuple[type, ...]] = (LinearModel,)
     stochastic_init: ClassVar[bool] = False
+    shared_covariance: ClassVar[bool] = False
 
     @abc.abstractmethod
     def init(self, model: LinearModel, prior: Gaussian) -> PyTree:
@@ -193,3 +197,39 @@ class AbstractFilter(eqx.Module):
         if self.throw:
             res = result.error_if(res, result != RESULTS.successful)
         return res
+
+    def batch(
+        self,
+        model: LinearModel,
+        prior: Gaussian,
+        ys: Float[ArrayLike, "B T m"],
+        keys: PRNGKeyArray | None = None,
+        *,
+        inputs: Float[ArrayLike, "B T p"] | None = None,
+    ) -> FilterResult:
+        """Filter `B` Monte Carlo runs `ys[b]` that share `model` and `prior`; the result
+        has a leading run axis and equals `jax.vmap(self)` run by run.
+
+        For filters with `shared_covariance` (the Kalman filter and the linear robust
+        filters) the covariance recursion, including every worst-case solve, is computed
+        once for the batch instead of once per run whenever no entry of `ys` is NaN (a
+        `lax.cond` on the whole batch, so it must not itself be called under `vmap` to
+        gain anything). `keys`: `(B,)` keys for stochastic filters; `inputs`: `(B, T, p)`.
+        """
+        ys = as_float_array("ys", ys, (3,))
+        num_runs = ys.shape[0]
+        if keys is not None and jnp.shape(keys)[:1] != (num_runs,):
+            raise ValueError(f"keys must hold one key per run, shape ({num_runs},), got {jnp.shape(keys)}")
+        if inputs is not None:
+            inputs = as_float_array("inputs", inputs, (3,))
+            if inputs.shape[0] != num_runs:
+                raise ValueError(f"inputs must have shape ({num_runs}, T, p) like ys, got {inputs.shape}")
+
+        def run(flt):
+            return jax.vmap(lambda y, k, u: flt(model, prior, y, k, inputs=u))(ys, keys, inputs)
+
+        if not (self.shared_covariance and getattr(self, "nan_as_missing", False)):
+            return run(self)
+        dense = copy.copy(self)  # the same filter, with the masking of missing rows compiled out
+        object.__setattr__(dense, "nan_as_missing", False)
+        return lax.cond(jnp.any(jnp.isnan(ys)), lambda: run(self), lambda: run(dense))

@@ -53,6 +53,8 @@ implicit function theorem on the same system (`lax.custom_root`), never from the
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -423,6 +425,7 @@ class BCOTKF(AbstractFilter):
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
     nan_as_missing: bool = eqx.field(static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __init__(self, radius: Float[ArrayLike, ""], *, max_iter: int = 100, throw: bool = True, nan_as_missing: bool = True):
         self.radius = _radius("radius", radius)

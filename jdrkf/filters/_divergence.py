@@ -10,6 +10,7 @@ the risk-sensitive filter uses a fixed θ.
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -300,6 +301,7 @@ class TauKF(AbstractFilter):
     c: Float[Array, ""]
     throw: bool = eqx.field(static=True)
     nan_as_missing: bool = eqx.field(static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __init__(self, tau: Float[ArrayLike, ""], c: Float[ArrayLike, ""], throw: bool = True, nan_as_missing: bool = True):
         self.tau = _scalar_param("tau", tau, 0.0, 1.0)
@@ -355,6 +357,7 @@ class RiskSensitiveKF(AbstractFilter):
     theta: Float[Array, ""]
     throw: bool = eqx.field(static=True)
     nan_as_missing: bool = eqx.field(static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __init__(self, theta: Float[ArrayLike, ""], throw: bool = True, nan_as_missing: bool = True):
         self.theta = _scalar_param("theta", theta, 0.0)

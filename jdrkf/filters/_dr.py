@@ -3,6 +3,8 @@ cases used as baselines: the Huber KF and the Wasserstein KF."""
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
@@ -142,6 +144,7 @@ class DRKF(AbstractFilter):
     max_iter: int = eqx.field(default=500, static=True)
     throw: bool = eqx.field(default=True, static=True, kw_only=True)  # declared first by AbstractFilter
     nan_as_missing: bool = eqx.field(default=True, static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __check_init__(self):
         _check_set("state_set", self.state_set)
@@ -177,6 +180,7 @@ class HuberKF(AbstractFilter):
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
     nan_as_missing: bool = eqx.field(static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __init__(self, eps: Float[ArrayLike, ""] = 0.05, k: Float[ArrayLike, ""] | None = None, *, throw: bool = True, nan_as_missing: bool = True):
         self.outliers = EpsContamination(eps, k)
@@ -208,6 +212,7 @@ class WassersteinKF(AbstractFilter):
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
     nan_as_missing: bool = eqx.field(static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __init__(self, rho: Float[ArrayLike, ""], *, rtol: float | None = None, max_iter: int = 500, throw: bool = True, nan_as_missing: bool = True):
         self.rho = radius("rho", rho)

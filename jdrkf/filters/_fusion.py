@@ -25,6 +25,7 @@ class CKF(AbstractFilter):
 
     throw: bool = eqx.field(default=True, static=True, kw_only=True)
     nan_as_missing: bool = eqx.field(default=True, static=True, kw_only=True)
+    shared_covariance: ClassVar[bool] = True
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
 
     def init(self, model: MultiSensorModel, prior: Gaussian) -> Gaussian:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
@@ -111,6 +113,7 @@ class KalmanFilter(AbstractFilter):
 
     throw: bool = eqx.field(default=True, static=True)
     nan_as_missing: bool = eqx.field(default=True, static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def init(self, model: LinearModel, prior: Gaussian) -> Gaussian:
         return prior

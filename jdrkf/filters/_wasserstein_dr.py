@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -77,6 +79,7 @@ class WassersteinDRKF(AbstractFilter):
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
     nan_as_missing: bool = eqx.field(static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __init__(self, theta_x: Float[ArrayLike, ""], theta_v: Float[ArrayLike, ""], *, rtol: float | None = None,
                  max_iter: int = 500, throw: bool = True, nan_as_missing: bool = True):
