@@ -2,6 +2,8 @@
 against independent cvxpy + Clarabel oracles (tests/maxent_oracle.py), closed-form edge
 cases, the supplement's Tables IV–VI and central finite differences."""
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -254,3 +256,199 @@ def test_continuous_matches_cvxpy_small(rng):
     np.testing.assert_allclose(np.asarray(res.mass)[:, None] * np.asarray(res.assignment), pi, atol=2e-6)
     with pytest.raises(ValueError, match="weights"):
         maxent_wasserstein_continuous(q, xq, theta, points=pts)
+
+
+# ------------------------------------- continuous: implicit derivatives, Algorithm 1 (PGD)
+
+CONT_Q = np.array([0.3, 0.2, 0.25, 0.25])
+CONT_EPS = 0.1
+
+
+@pytest.fixture(scope="module")
+def cont():
+    """4 atoms, 100 fixed uniform points on [0, 1]² (w = 1/100), 3 evaluation points and
+    the closed-form cost of the unconstrained solution (v₀ = 0: p uniform, every point
+    split over the cells in proportion q), above which the budget is slack."""
+    rng = np.random.default_rng(1)
+    xq, pts, xs = rng.random((4, 2)), rng.random((100, 2)), rng.random((3, 2))
+    w = np.full(100, 1 / 100)
+    c = np.linalg.norm(pts[:, None] - xq[None], axis=-1)
+    slack = float(w @ c @ CONT_Q / w.sum())
+    return xq, pts, w, xs, slack
+
+
+def cont_solve_(theta, q, xq, w, pts, method="exact", step=0.05, max_iter=200, tol=1e-12):
+    return maxent_wasserstein_continuous(
+        q, xq, theta, points=pts, weights=w, temperature=CONT_EPS, method=method, step=step, max_iter=max_iter, tol=tol
+    )
+
+
+def cont_vector(r, xs):
+    """(v₀, v₁, μ, constraint, cell_mass, ln p at xs, mass[:3]) of a solution."""
+    return jnp.concatenate([r.v0[None], r.v1[None], r.mu, r.constraint[None], r.cell_mass, r.log_density(xs), r.mass[:3]])
+
+
+# One compiled program each (max_iter, tol, step are traced).
+cont_solve = jax.jit(cont_solve_)
+cont_pgd = jax.jit(partial(cont_solve_, method="pgd"))
+# Jacobian as a vmap of jax.grad of each component (reverse mode, jit(grad)).
+_cont_grad = jax.grad(lambda e, *a: e @ cont_vector(cont_solve_(*a[:5]), a[5]), argnums=(1, 2, 3, 4, 5))
+cont_jac = jax.jit(jax.vmap(_cont_grad, in_axes=(0, None, None, None, None, None, None)))
+
+
+def cont_f(*a):
+    return np.asarray(cont_vector(cont_solve(*a[:5]), a[5]))
+
+
+def np_smoothed_dual(res, theta, eps):
+    """Objective (17) with the min smoothed at temperature ε, in the paper's (v₀, v₁, λ),
+    re-implemented in NumPy (log-sum-exp by hand)."""
+    v0, v1, lam = float(res.v0), float(res.v1), np.asarray(res.lam)
+    q, w = np.asarray(res.q), np.asarray(res.weights)
+    c = np.linalg.norm(np.asarray(res.points)[:, None] - np.asarray(res.support)[None], axis=-1)
+    a = -v0 * (c - lam) / eps
+    amax = a.max(axis=1)
+    g = -eps * (amax + np.log(np.exp(a - amax[:, None]).sum(axis=1)))
+    return v0 * (theta - lam @ q) + v1 + float(w @ np.exp(-g - v1 - 1.0))
+
+
+def fd_columns(f, x, idx, h):
+    """Central differences of `f` in the flat coordinates `idx` of `x`."""
+    cols = []
+    for i in idx:
+        e = np.zeros(x.size)
+        e[i] = h
+        e = e.reshape(x.shape)
+        cols.append((np.asarray(f(x + e)) - np.asarray(f(x - e))) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+def test_continuous_implicit_derivatives_match_fd(cont):
+    """IFT derivatives (jit(vmap(grad)), i.e. reverse mode) of (v₀, v₁, μ, constraint,
+    cell_mass, ln p at 3 points, mass[:3]) in θ, q, support_q, weights and points vs
+    central differences of the forward solve; closed forms d constraint/dθ = 1,
+    d cell_mass/dθ = 0 (both constraints active)."""
+    xq, pts, w, xs, slack = cont
+    theta = 0.6 * slack
+    args = (theta, CONT_Q, xq, w, pts)
+    out = cont_f(*args, xs)
+    assert out[0] > 0.5  # the budget is active
+    jt, jq, jx, jw, jp = (np.asarray(j) for j in cont_jac(np.eye(17), *args, xs))
+    assert abs(jt[6] - 1) < 1e-10 and np.max(np.abs(jt[7:11])) < 1e-10
+
+    def check(jac_cols, fd):
+        np.testing.assert_allclose(jac_cols, fd, rtol=1e-6, atol=1e-6 * np.max(np.abs(fd)))
+
+    check(jt, (cont_f(theta + 1e-6, *args[1:], xs) - cont_f(theta - 1e-6, *args[1:], xs)) / 2e-6)
+    check(jq, fd_columns(lambda q_: cont_f(theta, q_, xq, w, pts, xs), CONT_Q, range(4), 1e-6))
+    check(jx.reshape(-1, 8), fd_columns(lambda x_: cont_f(theta, CONT_Q, x_, w, pts, xs), xq, range(8), 1e-6))
+    check(jw[:, [0, 17, 63]], fd_columns(lambda w_: cont_f(theta, CONT_Q, xq, w_, pts, xs), w, [0, 17, 63], 1e-8))
+    check(jp.reshape(-1, 200)[:, [0, 1, 99]], fd_columns(lambda p_: cont_f(theta, CONT_Q, xq, w, p_, xs), pts, [0, 1, 99], 1e-6))
+
+
+def test_continuous_implicit_derivatives_bound_active(cont):
+    """θ above the slack cost: v₀ = 0, p uniform, μ = ε(ln q − mean ln q) (gauge Σμ = 0),
+    so dv₀ = 0, d ln p/dq = 0, d ln p/dw = −1/Σw, dμ/dq in closed form; also vs FD."""
+    xq, pts, w, xs, slack = cont
+    theta = 1.2 * slack
+    args = (theta, CONT_Q, xq, w, pts)
+    out = cont_f(*args, xs)
+    assert out[0] == 0
+    np.testing.assert_allclose(out[2:6], CONT_EPS * (np.log(CONT_Q) - np.log(CONT_Q).mean()), atol=1e-10)
+    np.testing.assert_allclose(out[11:14], -np.log(w.sum()), atol=1e-12)
+    jt, jq, jx, jw, _ = (np.asarray(j) for j in cont_jac(np.eye(17), *args, xs))
+    assert np.all(jt == 0) and np.all(jx[0] == 0) and np.all(jq[0] == 0) and np.all(jw[0] == 0)
+    n = 4
+    dnorm = np.eye(n) - np.outer(CONT_Q, np.ones(n))  # d(q/Σq)/dq at Σq = 1
+    dmu = CONT_EPS * (np.eye(n) - np.full((n, n), 1 / n)) @ np.diag(1 / CONT_Q) @ dnorm
+    np.testing.assert_allclose(jq[2:6], dmu, atol=1e-9)
+    np.testing.assert_allclose(jq[11:14], 0, atol=1e-10)
+    np.testing.assert_allclose(jw[11:14], -1 / w.sum(), atol=1e-9)
+    fd = fd_columns(lambda q_: cont_f(theta, q_, xq, w, pts, xs), CONT_Q, range(4), 1e-6)
+    np.testing.assert_allclose(jq, fd, rtol=1e-6, atol=1e-6 * np.max(np.abs(fd)))
+    fdt = (cont_f(theta + 1e-6, *args[1:], xs) - cont_f(theta - 1e-6, *args[1:], xs)) / 2e-6
+    np.testing.assert_allclose(fdt, 0, atol=2e-6)  # FD noise of solves to tol 1e-12
+
+
+def test_continuous_pgd_converges_with_many_iterations(cont):
+    """Algorithm 1 with a stable step on a well-conditioned instance reaches the exact
+    solution (cell masses → q, transport cost → θ, dual (17) value → exact's, = the
+    entropy); the paper's step 0.05 and S = 500 are not there yet."""
+    xq, pts, w, _, slack = cont
+    theta = 0.6 * slack
+    exact = cont_solve(theta, CONT_Q, xq, w, pts)
+    pgd = cont_pgd(theta, CONT_Q, xq, w, pts, step=0.5, max_iter=5000, tol=1e-12)
+    assert bool(pgd.converged) and 0 < int(pgd.iterations) < 5000
+    np.testing.assert_allclose(pgd.cell_mass, CONT_Q, atol=1e-10)
+    assert abs(float(pgd.constraint) - theta) < 1e-10
+    np.testing.assert_allclose(pgd.mass, exact.mass, rtol=1e-8)
+    np.testing.assert_allclose(pgd.v0, exact.v0, rtol=1e-8)
+    mu = np.asarray(pgd.mu)
+    np.testing.assert_allclose(mu - mu.mean(), exact.mu, atol=1e-8)  # exact's gauge: Σμ = 0
+    np.testing.assert_allclose(pgd.log_density(pts[:5]), exact.log_density(pts[:5]), atol=1e-8)
+    d_exact, d_pgd = np_smoothed_dual(exact, theta, CONT_EPS), np_smoothed_dual(pgd, theta, CONT_EPS)
+    assert abs(d_pgd - d_exact) < 1e-10
+    m, r = np.asarray(exact.mass), np.asarray(exact.assignment)
+    entropy = -m @ np.log(m / w) - CONT_EPS * np.sum(m[:, None] * r * np.log(r))  # H(p) + ε H(cell | x)
+    assert abs(entropy - d_exact) < 1e-9
+    early = cont_pgd(theta, CONT_Q, xq, w, pts, step=0.05, max_iter=500, tol=0.0)
+    assert int(early.iterations) == 500 and not bool(early.converged)
+    assert np_smoothed_dual(early, theta, CONT_EPS) - d_exact > 1e-6
+    assert abs(float(early.constraint) - theta) > 1e-3
+
+
+table_iv_pgd = jax.jit(
+    lambda t, eps, max_iter, tol: maxent_wasserstein_continuous(
+        TABLE_IV_Q, TABLE_IV_X, t, key=jax.random.key(0), method="pgd", temperature=eps, max_iter=max_iter, tol=tol
+    )
+)
+
+
+def test_continuous_pgd_paper_settings_table_iv():
+    """Table IV / Fig. 7 as in the authors' main.m (2000 Monte Carlo points, α = 0.05,
+    S = 500, init v₀ = 2, v₁ = 0, λ = 0): after S steps the iterate is far from the
+    optimum, with the smoothed min (ε = 0.05) and with the paper's hard min (ε = 0):
+    transport cost ≈ 0.159 against θ ≈ 0.0232 (the exact solver meets θ to 1e-10) and
+    v₀ ≈ 5.9 against 88.5 (α·v₀²/ε is too large for a stable fixed step)."""
+    theta = 0.1 * np_kl(TABLE_IV_Q, np.ones(6) / 6)
+    exact = continuous(jnp.asarray(TABLE_IV_Q), jnp.asarray(TABLE_IV_X), jnp.asarray(theta), key=jax.random.key(0))
+    assert abs(float(exact.constraint) - theta) < 1e-10 and np.max(np.abs(np.asarray(exact.cell_mass) - TABLE_IV_Q)) < 1e-10
+    for eps in (0.05, 0.0):
+        pgd = table_iv_pgd(theta, eps, 500, 0.0)
+        assert int(pgd.iterations) == 500 and not bool(pgd.converged)
+        assert float(pgd.constraint) - theta > 0.1
+        assert float(pgd.v0) < 0.1 * float(exact.v0)
+        assert abs(float(pgd.mass.sum()) - 1) < 1e-12
+        np.testing.assert_allclose(np.exp(pgd.log_density(pgd.points)) * np.asarray(pgd.weights), pgd.mass, rtol=1e-10)
+        if eps == 0:  # hard cells
+            assert set(np.unique(np.asarray(pgd.assignment))) <= {0.0, 1.0}
+            np.testing.assert_array_equal(np.argmax(np.asarray(pgd.assignment), 1), pgd.cell(pgd.points))
+    # the default gradient test (tol 1e-3) never passes within S = 500 steps either
+    assert int(table_iv_pgd(theta, 0.0, 500, 1e-3).iterations) == 500
+
+
+def test_continuous_pgd_forward_mode_through_iterations(cont):
+    """PGD derivatives are those of the unrolled iterate (forward mode), checked by FD."""
+    xq, pts, w, xs, slack = cont
+
+    def f(t):
+        return cont_vector(cont_pgd(t, CONT_Q, xq, w, pts, step=0.05, max_iter=50, tol=0.0), xs)
+
+    theta = 0.6 * slack
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(f))(theta), (f(theta + 1e-6) - f(theta - 1e-6)) / 2e-6, rtol=1e-6, atol=1e-9)
+
+
+def test_continuous_bad_arguments(cont):
+    xq, pts, w, _, slack = cont
+    kw = dict(points=pts, weights=w)
+    with pytest.raises(ValueError, match="method"):
+        maxent_wasserstein_continuous(CONT_Q, xq, slack, method="newton", **kw)
+    for step in (0.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="step"):
+            maxent_wasserstein_continuous(CONT_Q, xq, slack, method="pgd", step=step, **kw)
+    with pytest.raises(ValueError, match="temperature"):
+        maxent_wasserstein_continuous(CONT_Q, xq, slack, temperature=0.0, **kw)
+    with pytest.raises(ValueError, match="temperature"):
+        maxent_wasserstein_continuous(CONT_Q, xq, slack, method="pgd", temperature=-1.0, **kw)
+    with pytest.raises(ValueError, match="max_iter"):
+        maxent_wasserstein_continuous(CONT_Q, xq, slack, max_iter=-1, **kw)

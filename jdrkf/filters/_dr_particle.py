@@ -151,7 +151,8 @@ def _radial_points(key, support, q, radius, num_points):
 
 def _continuous(q, support, radius, key, num_points):
     """Theorem 3 (`maxent_wasserstein_continuous`) on the points of `_radial_points`.
-    Inputs carry no gradient (the continuous solver is not differentiable)."""
+    Inputs carry no gradient: the solver has implicit derivatives, but its quadrature
+    points are drawn with a scale set by the radius, so Method 4 is left undifferentiated."""
     q, support, radius = lax.stop_gradient((q, support, radius))
     pts, w = _radial_points(key, support, q, radius, num_points)
     return maxent_wasserstein_continuous(q, support, radius, points=pts, weights=w)

@@ -455,6 +455,17 @@ def _soft_min(v0, mu, c, eps):
     return -eps * logsumexp(z, axis=-1), jax.nn.softmax(z, axis=-1)
 
 
+def _cell_min(v0, lam, c, eps):
+    """`_soft_min(v₀, v₀λ, c, ε)` in the paper's `λ`, and for `ε = 0` the hard `min` of
+    eq. (16) with the cells `C_i = argmin_i (c_i − λ_i)` of eq. (18) (one-hot `r`)."""
+    pos = eps > 0
+    g_soft, r_soft = _soft_min(v0, v0 * lam, c, jnp.where(pos, eps, jnp.ones_like(eps)))
+    gap = c - lam
+    r_hard = jax.nn.one_hot(jnp.argmin(gap, axis=-1), c.shape[-1], dtype=c.dtype)
+    g_hard = v0 * jnp.min(gap, axis=-1)
+    return jnp.where(pos, g_soft, g_hard), jnp.where(pos, r_soft, r_hard)
+
+
 def _continuous_dual(z, c, logw, q, theta, eps):
     """Reduced dual (`v₁` eliminated) of the smoothed problem, in `z = (v₀, μ)`, plus the
     gauge term `½(Σμ)²` (the dual is invariant under `μ → μ + t`)."""
@@ -463,17 +474,45 @@ def _continuous_dual(z, c, logw, q, theta, eps):
     return v0 * theta - mu @ q + logsumexp(logw - g) + 0.5 * jnp.sum(mu) ** 2
 
 
+def _continuous_dual_z(z, params):
+    return _continuous_dual(z, *params)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _implicit_stationary(dual, z, keep, params):
+    """Returns the minimizer `z` of `dual(z, params)` (from a non-differentiated solve);
+    its JVP is the implicit function theorem on `∇_z dual = 0` restricted to the free
+    coordinates (`keep`): `dz = −H⁻¹ ∂_p∇_z dual · dp` there, `0` on the coordinates held
+    at a bound. The vector counterpart of `_implicit` (the Hessian must be nonsingular)."""
+    return z
+
+
+@_implicit_stationary.defjvp
+def _implicit_stationary_jvp(dual, primals, tangents):
+    z, keep, params = primals
+    dparams = tangents[2]
+    grad_z = jax.grad(dual)
+    free = keep.astype(z.dtype)
+    h = jax.hessian(dual)(z, params)
+    h = h * free[:, None] * free[None, :] + jnp.diag(1.0 - free)
+    rhs = jax.jvp(lambda p_: grad_z(z, p_), (params,), (dparams,))[1]
+    return z, -jnp.linalg.solve(h, rhs * free)
+
+
 class MaxEntContinuous(eqx.Module):
     """Theorem 3 solution on a bounded domain, discretized on points `y_k` with weights
     `w_k` (Monte Carlo: `w_k = vol/K`).
 
     - `v0`, `v1`, `mu` (`μ_i = v₀ λ_i`; `lam` gives the paper's `λ_i = μ_i / v₀`),
       `temperature` (`ε`): `p(x) = exp(−G(x) − v₁ − 1)` with
-      `G(x) = −ε LSE_i(−(v₀‖x − x_i‖ − μ_i)/ε)`, i.e. eq. (16) with the `min` smoothed.
+      `G(x) = −ε LSE_i(−(v₀‖x − x_i‖ − μ_i)/ε)`, i.e. eq. (16) with the `min` smoothed
+      (`ε = 0`, PGD only: the hard `min`).
     - `mass[k] = w_k p(y_k)` (sums to 1), `assignment[k, i]` = share of `y_k` transported
       to `x_i` (soft cell membership; rows sum to 1).
     - `constraint` = transport cost `Σ_k mass_k Σ_i assignment_ki ‖y_k − x_i‖`; `cell_mass`
       = `Σ_k mass_k assignment_ki` (= `q` at the solution, eq. 21).
+    - `iterations`, `converged`: Newton steps and `‖∇dual‖_∞ ≤ tol` (`method="exact"`), or
+      PGD passes and "the projected gradient (19)–(21) is below `tol`" (`method="pgd"`).
     """
 
     support: Float[Array, "N d"]
@@ -497,18 +536,24 @@ class MaxEntContinuous(eqx.Module):
         pos = self.v0 > 0
         return jnp.where(pos, self.mu / jnp.where(pos, self.v0, 1.0), 0.0)
 
-    def log_density(self, x: Float[ArrayLike, "... d"]) -> Float[Array, "..."]:
-        """`ln p(x)` (eq. 16 with the smoothed min); `x` anywhere in the domain."""
+    def _g(self, x):
         x = jnp.asarray(x, self.points.dtype)
         d2 = jnp.sum((x[..., None, :] - self.support) ** 2, axis=-1)
-        c = jnp.sqrt(d2)
-        g, _ = _soft_min(self.v0, self.mu, c, self.temperature)
+        pos = d2 > 0  # zero (sub)gradient at the atoms, as in `_pairwise_distance`
+        c = jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
+        eps = self.temperature
+        soft = eps > 0
+        g_soft, _ = _soft_min(self.v0, self.mu, c, jnp.where(soft, eps, jnp.ones_like(eps)))
+        return c, jnp.where(soft, g_soft, jnp.min(self.v0 * c - self.mu, axis=-1))
+
+    def log_density(self, x: Float[ArrayLike, "... d"]) -> Float[Array, "..."]:
+        """`ln p(x)` (eq. 16 with the smoothed min); `x` anywhere in the domain."""
+        _, g = self._g(x)
         return -g - self.v1 - 1.0
 
     def cell(self, x: Float[ArrayLike, "... d"]) -> Int[Array, "..."]:
         """Index `i` of the cell `C_i` (eq. 18: argmin of `‖x − x_i‖ − λ_i`) containing `x`."""
-        x = jnp.asarray(x, self.points.dtype)
-        c = jnp.sqrt(jnp.sum((x[..., None, :] - self.support) ** 2, axis=-1))
+        c, _ = self._g(x)
         return jnp.argmin(self.v0 * c - self.mu, axis=-1)
 
     def sample(self, key: PRNGKeyArray, num: int) -> tuple[Float[Array, "num d"], Int[Array, " num"]]:
@@ -529,65 +574,14 @@ class MaxEntContinuous(eqx.Module):
         return self.points[idx], cells
 
 
-def maxent_wasserstein_continuous(
-    q: Float[ArrayLike, " N"],
-    support_q: Float[ArrayLike, "N d"],
-    theta: Float[ArrayLike, ""],
-    *,
-    key: PRNGKeyArray | None = None,
-    num_points: int = 2000,
-    bounds: tuple[float, float] | Float[ArrayLike, "d 2"] = (0.0, 1.0),
-    points: Float[ArrayLike, "K d"] | None = None,
-    weights: Float[ArrayLike, " K"] | None = None,
-    temperature: float = 0.05,
-    max_iter: int = 200,
-    tol: float | None = None,
-) -> MaxEntContinuous:
-    """Theorem 3: the max-entropy density within Wasserstein-1 distance `θ` of the discrete
-    `q` on `support_q`, over a box domain.
-
-    The domain integral is discretized on `points` (with quadrature `weights`; default
-    `vol/K`), or on `num_points` uniform Monte Carlo points in `bounds` (a `(lo, hi)` pair
-    for every axis, or one row per axis) drawn with `key` — the paper uses 2000 points on
-    `[0, 1]²`. On a finite point set the cell masses of eq. (21) are step functions of `λ`,
-    so the dual (17) is not smooth and its minimizer not unique; we therefore smooth the
-    `min` in (16) with temperature `ε = temperature` (in nats of `v₀ c`): this is the exact
-    solution of `max H(p) + ε H(cell | x)` s.t. transport cost `≤ θ`, cell masses `= q`,
-    `∫p = 1` on the discretization (converges to Theorem 3 as `ε → 0`). The reduced convex
-    dual in `(v₀, μ = v₀λ)` is solved by projected Newton with backtracking
-    (`max_iter` steps, stop when the gradient is below `tol`); `v₁` is eliminated in closed
-    form, so `∫p = 1` holds exactly. Not differentiable (use the discrete solvers for
-    gradients).
-    """
-    q = _check_prob("q", q)
+def _continuous_exact(c, logw, q, theta, eps, max_iter, tol):
+    """Projected Newton with backtracking on `_continuous_dual` (under `stop_gradient`),
+    then the implicit function theorem at the minimizer (`_implicit_stationary`)."""
     dtype = q.dtype
-    xq = _check_support("support_q", support_q, q.shape[0]).astype(dtype)
-    d = xq.shape[1]
-    theta = _check_theta(theta, dtype)
-    if points is None:
-        if key is None:
-            raise ValueError("pass either points (K, d) or a PRNG key to draw Monte Carlo points")
-        b = jnp.asarray(bounds, dtype)
-        b = jnp.broadcast_to(b, (d, 2))
-        u = jax.random.uniform(key, (num_points, d), dtype=dtype)
-        pts = b[:, 0] + u * (b[:, 1] - b[:, 0])
-        vol = jnp.prod(b[:, 1] - b[:, 0])
-        w = jnp.full((num_points,), vol / num_points, dtype)
-    else:
-        pts = _check_support("points", points).astype(dtype)
-        if pts.shape[1] != d:
-            raise ValueError(f"points must have {d} columns like support_q, got shape {pts.shape}")
-        if weights is None:
-            raise ValueError("pass quadrature weights (K,) together with points (w_k = volume / K for Monte Carlo)")
-        w = as_float_array("weights", weights, (1,)).astype(dtype)
-        if w.shape[0] != pts.shape[0]:
-            raise ValueError(f"weights must have shape ({pts.shape[0]},), got {w.shape}")
-    eps_t = jnp.asarray(temperature, dtype)
-    tol = (1e-10 if dtype == jnp.float64 else 1e-5) if tol is None else tol
-    c = _pairwise_distance(pts, xq)  # K × N
-    logw = jnp.log(w)
     n = q.shape[0]
-    dual = partial(_continuous_dual, c=c, logw=logw, q=q, theta=theta, eps=eps_t)
+    params = (c, logw, q, theta, eps)
+    params_ng = lax.stop_gradient(params)
+    dual = partial(_continuous_dual_z, params=params_ng)
     grad_f, hess_f = jax.grad(dual), jax.hessian(dual)
     steps = 0.5 ** jnp.arange(30, dtype=dtype)
 
@@ -623,15 +617,165 @@ def maxent_wasserstein_continuous(
     z0 = jnp.concatenate([jnp.ones((1,), dtype), jnp.zeros((n,), dtype)])
     g0, _ = newton_dir(z0)
     z, g_red, k = lax.while_loop(cond, body, (z0, g0, jnp.asarray(0)))
+    # v₀ > 0: full IFT system; v₀ = 0 (budget slack): v₀ stays 0, IFT in μ only.
+    keep = jnp.ones((n + 1,), bool).at[0].set(z[0] > 0)
+    z = _implicit_stationary(_continuous_dual_z, z, keep, params)
     v0, mu = z[0], z[1:]
-    g, r = _soft_min(v0, mu, c, eps_t)
+    g, r = _soft_min(v0, mu, c, eps)
     log_norm = logsumexp(logw - g)
-    mass = jnp.exp(logw - g - log_norm)
+    return v0, log_norm - 1.0, mu, jnp.exp(logw - g - log_norm), r, k, jnp.max(jnp.abs(g_red)) <= tol
+
+
+def _continuous_pgd(c, logw, q, theta, eps, step, max_iter, tol, init):
+    """The reference `main.m` of Fig. 7 / Table IV (Algorithm 1 with eqs. 19–21): from
+    `(v₀, v₁, λ) = (init[0], init[1], 0)`, plain projected gradient steps of size `step` on
+    the dual (17) in the paper's variables; stop when the projected gradient (19)–(21) is
+    below `tol` (max-norm) at the current iterate, or after `max_iter` steps. (`main.m`
+    tests `|∫p − 1| = |(20)|` alone; on Table IV that fires after 64 steps with the
+    transport cost 8× over budget.) `ε = eps > 0` smooths the `min` as in the exact
+    solver; `ε = 0` is the paper's hard `min` / hard cells."""
+    dtype = q.dtype
+    w = jnp.exp(logw)
+
+    def stats(v0, v1, lam):
+        g, r = _cell_min(v0, lam, c, eps)
+        p = w * jnp.exp(-g - v1 - 1.0)  # w_k p(y_k), unnormalized
+        gap = jnp.sum(r * (c - lam), axis=1)  # ∂G/∂v₀ = g(x, λ) of (19)
+        return jnp.sum(p), p @ gap, p @ r
+
+    def grads(v0, lam, s):
+        p_int, gp_int, part_int = s
+        return theta - lam @ q - gp_int, 1.0 - p_int, v0 * (part_int - q)  # (19), (20), (21)
+
+    def residual(v0, lam, s):
+        g0, g1, glam = grads(v0, lam, s)
+        g0 = jnp.where(v0 > 0, g0, jnp.minimum(g0, 0.0))  # projected gradient at the bound
+        return jnp.maximum(jnp.maximum(jnp.abs(g0), jnp.abs(g1)), jnp.max(jnp.abs(glam)))
+
+    def cond(carry):
+        v0, _, lam, s, k = carry
+        return (k < max_iter) & (residual(v0, lam, s) >= tol)
+
+    def body(carry):
+        v0, v1, lam, s, k = carry
+        g0, g1, glam = grads(v0, lam, s)
+        v0, v1, lam = jnp.maximum(v0 - step * g0, 0.0), v1 - step * g1, lam - step * glam
+        return v0, v1, lam, stats(v0, v1, lam), k + 1
+
+    v0, v1 = jnp.asarray(init[0], dtype), jnp.asarray(init[1], dtype)
+    lam = jnp.zeros_like(q)
+    v0, v1, lam, s, k = lax.while_loop(cond, body, (v0, v1, lam, stats(v0, v1, lam), jnp.asarray(0)))
+    converged = residual(v0, lam, s) < tol
+    # Algorithm 1's normalization step: p ← p/∫p, i.e. v₁ ← v₁ + ln ∫p.
+    g, r = _cell_min(v0, lam, c, eps)
+    log_norm = logsumexp(logw - g)
+    return v0, log_norm - 1.0, v0 * lam, jnp.exp(logw - g - log_norm), r, k, converged
+
+
+def maxent_wasserstein_continuous(
+    q: Float[ArrayLike, " N"],
+    support_q: Float[ArrayLike, "N d"],
+    theta: Float[ArrayLike, ""],
+    *,
+    key: PRNGKeyArray | None = None,
+    num_points: int = 2000,
+    bounds: tuple[float, float] | Float[ArrayLike, "d 2"] = (0.0, 1.0),
+    points: Float[ArrayLike, "K d"] | None = None,
+    weights: Float[ArrayLike, " K"] | None = None,
+    temperature: float = 0.05,
+    method: str = "exact",
+    step: float = 0.05,
+    max_iter: int | None = None,
+    tol: float | None = None,
+    init: tuple[float, float] = (2.0, 0.0),
+) -> MaxEntContinuous:
+    """Theorem 3: the max-entropy density within Wasserstein-1 distance `θ` of the discrete
+    `q` on `support_q`, over a box domain.
+
+    The domain integral is discretized on `points` (with quadrature `weights`; default
+    `vol/K`), or on `num_points` uniform Monte Carlo points in `bounds` (a `(lo, hi)` pair
+    for every axis, or one row per axis) drawn with `key` — the paper uses 2000 points on
+    `[0, 1]²`. On a finite point set the cell masses of eq. (21) are step functions of `λ`,
+    so the dual (17) is not smooth and its minimizer not unique; we therefore smooth the
+    `min` in (16) with temperature `ε = temperature > 0` (in nats of `v₀ c`): this is the
+    exact solution of `max H(p) + ε H(cell | x)` s.t. transport cost `≤ θ`, cell masses
+    `= q`, `∫p = 1` on the discretization (converges to Theorem 3 as `ε → 0`).
+
+    `method="exact"`: projected Newton with backtracking on the reduced convex dual in
+    `(v₀, μ = v₀λ)` (`v₁` eliminated in closed form, so `∫p = 1` exactly; at most
+    `max_iter`, default 200, steps; stop when the gradient is below `tol`, default 1e-10
+    (float64) / 1e-5 (float32)). Differentiable (`jax.grad`/`jax.jvp`) in `theta`, `q`,
+    `support_q`, `points`, `weights` and `temperature` by the implicit function theorem on
+    the dual's stationarity (the Newton loop runs under `stop_gradient`); when the budget is
+    slack (`θ` at least the cost of the unconstrained solution) `v₀ = 0` and its derivative
+    is 0 (reduced system in `μ`).
+
+    `method="pgd"`: the paper's projected gradient descent (Algorithm 1 with gradients
+    (19)–(21), as in the authors' `main.m` for Fig. 7): variables `(v₀, v₁, λ)` from
+    `(init[0], init[1], 0)`, step `step` (α), stop when the projected gradient (19)–(21)
+    is below `tol` (max-norm; default 1e-3, the code's `numerical_eps`, which the code
+    applies to (20) alone) or after `max_iter` (S, default 500) steps; `p` is then
+    renormalized (`v1` is reported after normalization). It uses the same smoothed `min`,
+    or with `temperature=0` the paper's hard `min` and hard cells verbatim. Its output is an
+    early-stopped iterate in general (`converged`: the gradient test passed). The fixed
+    step is stable only while `step · v₀²/ε` is moderate (on Table IV, α = 0.05 oscillates
+    and 500 steps end with the transport cost ≈ 7× θ). Derivatives flow through the unrolled iterations in forward mode
+    (`jax.jvp`/`jacfwd` give the derivative of the returned iterate); reverse mode is not
+    available (`lax.while_loop`); there is no implicit differentiation.
+    """
+    _check_method(method)
+    q = _check_prob("q", q)
+    dtype = q.dtype
+    xq = _check_support("support_q", support_q, q.shape[0]).astype(dtype)
+    d = xq.shape[1]
+    theta = _check_theta(theta, dtype)
+    if is_concrete(temperature):
+        t = float(np.asarray(temperature))
+        if not np.isfinite(t) or t < 0 or (t == 0 and method == "exact"):
+            raise ValueError(
+                f"temperature must be a finite number > 0 (>= 0 with method='pgd'), got {t:g}"
+            )
+    if method == "pgd" and is_concrete(step):
+        s = float(np.asarray(step))
+        if not np.isfinite(s) or s <= 0:
+            raise ValueError(f"step must be a finite number > 0, got {s:g}")
+    if max_iter is not None and is_concrete(max_iter):
+        m = np.asarray(max_iter)
+        if m.ndim != 0 or not np.issubdtype(m.dtype, np.integer) or m < 0:
+            raise ValueError(f"max_iter must be a nonnegative int, got {max_iter!r}")
+    if points is None:
+        if key is None:
+            raise ValueError("pass either points (K, d) or a PRNG key to draw Monte Carlo points")
+        b = jnp.asarray(bounds, dtype)
+        b = jnp.broadcast_to(b, (d, 2))
+        u = jax.random.uniform(key, (num_points, d), dtype=dtype)
+        pts = b[:, 0] + u * (b[:, 1] - b[:, 0])
+        vol = jnp.prod(b[:, 1] - b[:, 0])
+        w = jnp.full((num_points,), vol / num_points, dtype)
+    else:
+        pts = _check_support("points", points).astype(dtype)
+        if pts.shape[1] != d:
+            raise ValueError(f"points must have {d} columns like support_q, got shape {pts.shape}")
+        if weights is None:
+            raise ValueError("pass quadrature weights (K,) together with points (w_k = volume / K for Monte Carlo)")
+        w = as_float_array("weights", weights, (1,)).astype(dtype)
+        if w.shape[0] != pts.shape[0]:
+            raise ValueError(f"weights must have shape ({pts.shape[0]},), got {w.shape}")
+    eps_t = jnp.asarray(temperature, dtype)
+    c = _pairwise_distance(pts, xq)  # K × N
+    logw = jnp.log(w)
+    if method == "exact":
+        tol = (1e-10 if dtype == jnp.float64 else 1e-5) if tol is None else tol
+        out = _continuous_exact(c, logw, q, theta, eps_t, 200 if max_iter is None else max_iter, tol)
+    else:
+        tol = 1e-3 if tol is None else tol
+        out = _continuous_pgd(c, logw, q, theta, eps_t, step, 500 if max_iter is None else max_iter, tol, init)
+    v0, v1, mu, mass, r, k, converged = out
     return MaxEntContinuous(
         support=xq,
         q=q,
         v0=v0,
-        v1=log_norm - 1.0,
+        v1=v1,
         mu=mu,
         temperature=eps_t,
         points=pts,
@@ -641,5 +785,5 @@ def maxent_wasserstein_continuous(
         constraint=jnp.sum(mass[:, None] * r * c),
         cell_mass=mass @ r,
         iterations=k,
-        converged=jnp.max(jnp.abs(g_red)) <= tol,
+        converged=converged,
     )
