@@ -314,3 +314,27 @@ def test_scipy_block_diag_sanity():
     H, R = fo.stacked([np.ones((1, 2)), np.zeros((2, 2))], [np.eye(1), 2 * np.eye(2)])
     np.testing.assert_array_equal(R, scipy.linalg.block_diag(np.eye(1), 2 * np.eye(2)))
     assert H.shape == (3, 2)
+
+
+@pytest.mark.slow
+def test_mdrkf_grad_through_filter_matches_finite_differences(rng, getkey):
+    """d MSE / d (γ1, γ2) through the whole MarginalDRKF (the solver's implicit
+    derivatives chained over time steps) against central finite differences. The lower
+    bound γ1 is inactive here (the worst case sits on the upper bounds): its derivative
+    is ~0, which the gradient must reproduce too."""
+    model = _random_model(rng, n=2, dims=(1, 1), q=2, beta=True)
+    prior = jdrkf.Gaussian(jnp.zeros(2), jnp.eye(2))
+    traj = _simulate_multisensor(getkey(), model, prior, 6, 1)
+    ys, xs = traj.observations[0], traj.states[0]
+
+    @jax.jit
+    def mse(g):
+        res = MarginalDRKF(MarginalMoment(g[0], g[1]))(model, prior, ys)
+        return jnp.mean((res.filtered_means - xs) ** 2)
+
+    g0 = np.array([0.8, 1.3])
+    grad = jax.jit(jax.grad(mse))(jnp.asarray(g0))
+    h = 1e-3  # the barrier solver's round-off makes smaller steps noisy (FD error ~1e-12 / h)
+    fd = np.array([(float(mse(g0 + h * e)) - float(mse(g0 - h * e))) / (2 * h) for e in np.eye(2)])
+    assert abs(fd[1]) > 1e-3
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-8)
