@@ -43,18 +43,20 @@ def _run_per_model(flt, model, prior, transition_matrices, ys, keys):
     return jax.vmap(lambda F, y, k: flt(eqx.tree_at(lambda mm: mm.F, model, F), prior, y, k))(transition_matrices, ys, keys)
 
 
-def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, metrics):
+def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, metrics, missing, clean_missing):
+    """`missing`, `clean_missing` (static): whether the observations / the outlier-free
+    ones hold any NaN, decided eagerly so that `batch` compiles one branch only."""
     out = {}
     for name, flt in filters.items():
-        mdl, ys, per_run_F = model, chunk.observations, None
+        mdl, ys, per_run_F, nan = model, chunk.observations, None, missing
         if isinstance(flt, Clairvoyant):
             if flt.true_model:
                 mdl, per_run_F = true_model, chunk.transition_matrices
             if flt.clean:
-                ys = chunk.clean_observations
+                ys, nan = chunk.clean_observations, clean_missing
             flt = flt.filter
         if per_run_F is None:  # one model for all runs: `batch` shares what it can across them
-            res = flt.batch(mdl, prior, ys, keys)
+            res = flt._batch(mdl, prior, ys, keys, None, nan)
         else:
             res = _run_per_model(flt, mdl, prior, per_run_F, ys, keys)
         vals = jax.vmap(lambda traj, r: {mname: fn(traj, r) for mname, fn in metrics.items()})(chunk, res)
@@ -122,12 +124,14 @@ def montecarlo(
 
         starts = tqdm(starts, desc="Monte Carlo chunks", unit="chunk")
 
+    missing = bool(np.isnan(np.asarray(trajectories.observations)).any())
+    clean_missing = bool(np.isnan(np.asarray(trajectories.clean_observations)).any())
     pieces = []
     for start in starts:
         stop = min(start + chunk, num_runs)
         idx = np.minimum(np.arange(start, start + chunk), num_runs - 1)  # pad with the last run
         data = jax.tree.map(lambda a: a[idx], (trajectories, run_keys))
         data = jax.device_put(data, sharding)
-        out = _run_chunk_jit(dict(filters), model, true_model, prior, data[0], data[1], metrics)
+        out = _run_chunk_jit(dict(filters), model, true_model, prior, data[0], data[1], metrics, missing, clean_missing)
         pieces.append(jax.tree.map(lambda a: np.asarray(a)[: stop - start], out))
     return jax.tree.map(lambda *a: np.concatenate(a, axis=0), *pieces)

@@ -71,6 +71,7 @@ def test_stkf_ar2_beats_kf_under_measurement_outliers(torsion):
         assert mean[("STKF-AR2", f"rmse_x{state}@y3")] < 0.8 * mean[("KF", f"rmse_x{state}@y3")]
 
 
+@pytest.mark.slow
 def test_identity_report():
     rep = lv.run_identity(runs=3, seed=2, num_steps=500)
     assert len([r for r in rep.rows if r.metric.startswith("rmse")]) == 2 * 4 * 2

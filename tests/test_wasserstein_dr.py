@@ -163,7 +163,7 @@ def test_value_monotone_in_radii():
     assert all(b > a for a, b in zip(values, values[1:], strict=False))
 
 
-@pytest.mark.parametrize("which", ["theta_x", "theta_v"])
+@pytest.mark.parametrize("which", ["theta_x", pytest.param("theta_v", marks=pytest.mark.slow)])
 def test_gradients_vs_finite_differences(which):
     model = _model(A3, C3, W3, V3)
 

@@ -212,9 +212,10 @@ class AbstractFilter(eqx.Module):
 
         For filters with `shared_covariance` (the Kalman filter and the linear robust
         filters) the covariance recursion, including every worst-case solve, is computed
-        once for the batch instead of once per run whenever no entry of `ys` is NaN (a
-        `lax.cond` on the whole batch, so it must not itself be called under `vmap` to
-        gain anything). `keys`: `(B,)` keys for stochastic filters; `inputs`: `(B, T, p)`.
+        once for the batch instead of once per run whenever no entry of `ys` is NaN. On
+        concrete `ys` this is decided in Python; under `jit` by a `lax.cond` on the whole
+        batch (both branches are compiled; under `vmap` the cond runs both).
+        `keys`: `(B,)` keys for stochastic filters; `inputs`: `(B, T, p)`.
         """
         ys = as_float_array("ys", ys, (3,))
         num_runs = ys.shape[0]
@@ -224,6 +225,12 @@ class AbstractFilter(eqx.Module):
             inputs = as_float_array("inputs", inputs, (3,))
             if inputs.shape[0] != num_runs:
                 raise ValueError(f"inputs must have shape ({num_runs}, T, p) like ys, got {inputs.shape}")
+        missing = jnp.any(jnp.isnan(ys))
+        return self._batch(model, prior, ys, keys, inputs, missing if isinstance(missing, jax.core.Tracer) else bool(missing))
+
+    def _batch(self, model, prior, ys, keys, inputs, missing: bool | Array) -> FilterResult:
+        """`batch` with `missing` (any NaN in `ys`) given: a Python bool picks the branch
+        when tracing (as `montecarlo` does), a traced one becomes a `lax.cond`."""
 
         def run(flt):
             return jax.vmap(lambda y, k, u: flt(model, prior, y, k, inputs=u))(ys, keys, inputs)
@@ -232,4 +239,6 @@ class AbstractFilter(eqx.Module):
             return run(self)
         dense = copy.copy(self)  # the same filter, with the masking of missing rows compiled out
         object.__setattr__(dense, "nan_as_missing", False)
-        return lax.cond(jnp.any(jnp.isnan(ys)), lambda: run(self), lambda: run(dense))
+        if isinstance(missing, bool):
+            return run(self if missing else dense)
+        return lax.cond(missing, lambda: run(self), lambda: run(dense))
