@@ -491,7 +491,8 @@ def build_markdown(r) -> str:
         L += [
             (f"- CPU: {meta.get('cpu_model')}, {meta.get('cpu_count')} cores; JAX devices: "
              f"{', '.join(meta.get('jax_devices') or ['?'])}; float64; OPENBLAS_NUM_THREADS="
-             f"{meta.get('openblas_num_threads') or 'unset'} in the children."),
+             f"{meta.get('openblas_num_threads') or 'unset'} in the children; JAX CPU async dispatch "
+             f"{'on (JAX default: a call returns before its result is ready, adding thread hand-off latency to one small solve)' if meta.get('async_dispatch', True) else 'off (`--sync-dispatch`: the latency of one call)'}."),
             "- Versions: " + ", ".join(f"{k} {v}" for k, v in (meta.get("versions") or {}).items()) + ".",
             (f"- Git commit {(meta.get('git') or {}).get('commit')}"
              f"{' (jdrkf/ has uncommitted changes)' if (meta.get('git') or {}).get('jdrkf_dirty') else ''}; jdrkf source "
@@ -638,6 +639,7 @@ def run_child(args, cell: str) -> dict:
         import jax
 
         jax.config.update("jax_enable_x64", True)
+        jax.config.update("jax_cpu_enable_async_dispatch", not args.sync_dispatch)
         out["jax_devices"] = [str(d) for d in jax.devices()]
         out["result"] = bench_jdrkf(args, n, m, wd)
     else:
@@ -693,6 +695,8 @@ def main(argv=None) -> int:
     p.add_argument("--no-openblas-1-row", action="store_true",
                    help="skip the extra jdrkf child run with OPENBLAS_NUM_THREADS=1")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sync-dispatch", action="store_true",
+                   help="turn JAX's CPU async dispatch off in the jdrkf children (latency of one call; default: on, JAX's default)")
     p.add_argument("--watchdog-s", type=float, default=600.0, help="a child aborts when a phase runs longer than this")
     p.add_argument("--watchdog-first-call-s", type=float, default=180.0, help="limit for a first (compiling) call")
     p.add_argument("--retries", type=int, default=1, help="re-runs of a cell whose child hung")
@@ -725,6 +729,7 @@ def main(argv=None) -> int:
         "openblas_num_threads": (str(args.openblas_threads) if args.openblas_threads is not None
                                  else os.environ.get("OPENBLAS_NUM_THREADS")),
         "jdrkf_source_sha256_start": package_source_hash(), "loadavg": {"start": loadavg()},
+        "async_dispatch": not args.sync_dispatch,
     }
     log(f"steady_state_solver: sizes {sizes}, load {meta['loadavg']['start']}")
     children, attempts, failed = {}, [], []

@@ -1060,7 +1060,8 @@ def spawn(args, cell: str, extra=()) -> tuple[dict | None, list]:
     for attempt in range(args.retries + 1):
         with tempfile.TemporaryDirectory() as tmp:
             path = os.path.join(tmp, "cell.json")
-            cmd = [sys.executable, os.path.abspath(__file__), *args.argv, "--child-cell", cell, "--child-out", path, *extra]
+            argv = [a for a in args.argv if a != "--sync-dispatch"] if cell == "dispatch-probe" else args.argv
+            cmd = [sys.executable, os.path.abspath(__file__), *argv, "--child-cell", cell, "--child-out", path, *extra]
             t0 = time.perf_counter()
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             sys.stderr.write(proc.stderr)
