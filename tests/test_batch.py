@@ -101,7 +101,7 @@ def test_known_missing_flag_compiles_one_branch():
     model, prior, ys = _setup(nan=True)
     flt = SHARED["KF"]
     for missing in (True, False):
-        closed = jax.make_jaxpr(lambda y: flt._batch(model, prior, y, None, None, missing))(ys)
+        closed = jax.make_jaxpr(lambda y, missing=missing: flt._batch(model, prior, y, None, None, missing))(ys)
         assert not [e for e in closed.jaxpr.eqns if e.primitive.name == "cond"]
         shapes = _main_scan_carry_shapes(closed)
         assert ((B, 2, 2) in shapes) == missing and ((2, 2) in shapes) != missing

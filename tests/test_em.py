@@ -239,6 +239,7 @@ def test_loglik_never_decreases(offset_update):
         np.testing.assert_allclose(res.loglik, hist[k], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_consistency_long_series():
     # Well-observed model (near-constant-velocity, every state measured). One series
     # of T = 3000 steps estimates each entry with ~5% standard error; the mean of 4

@@ -4,10 +4,13 @@ pieces against the paper's setting and independent NumPy computations."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
+
 import jdrkf
 from jdrkf.experiments import jang
 
 
+@pytest.mark.slow
 def test_convergence_experiment_small(tmp_path):
     report = jang.run_convergence(3, seed=0)
     rows = {(r.filter, r.metric): r for r in report.rows}
@@ -47,6 +50,7 @@ def test_lqr_setting():
     np.testing.assert_allclose(np.var(np.asarray(draws), axis=0), 0.006, rtol=0.05)
 
 
+@pytest.mark.slow
 def test_em_nominals_and_closed_loop_batch():
     qs, rs = jang._nominal_models(jax.random.key(0), "gaussian", 3)
     assert qs.shape == (3, 4, 4) and rs.shape == (3, 2, 2)

@@ -163,7 +163,8 @@ def test_value_monotone_in_radii():
     assert all(b > a for a, b in zip(values, values[1:], strict=False))
 
 
-@pytest.mark.parametrize("which", ["theta_x", pytest.param("theta_v", marks=pytest.mark.slow)])
+@pytest.mark.slow  # DRKF(Wasserstein, Wasserstein) = WassersteinDRKF is tested, and its θx, θv gradients are in test_tuning
+@pytest.mark.parametrize("which", ["theta_x", "theta_v"])
 def test_gradients_vs_finite_differences(which):
     model = _model(A3, C3, W3, V3)
 
