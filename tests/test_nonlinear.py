@@ -16,6 +16,7 @@ import scipy.stats
 
 import jdrkf
 from jdrkf._nonlinear import NonlinearModel, _simulate_nonlinear
+from jdrkf.experiments.wang_nonlinear import growth_f, growth_h
 from jdrkf._noise import GaussianNoise, MixtureNoise, OutlierNoise, ScaledNoise, StudentTNoise, UQuadraticNoise
 
 
@@ -23,16 +24,6 @@ Z = 6.0
 
 
 # --------------------------------------------------------------------------- models
-
-
-def growth_f(x, t):
-    """Seed 003, Section V-A: x/2 + 25x/(1 + x²) + 8 cos(1.2 k), k = t + 1."""
-    k = (t + 1).astype(x.dtype)
-    return x / 2 + 25 * x / (1 + x**2) + 8 * jnp.cos(1.2 * k)
-
-
-def growth_h(x, t):
-    return x**2 / 20
 
 
 def np_growth_f(x, t):

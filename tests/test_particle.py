@@ -16,6 +16,7 @@ import pytest
 
 import jdrkf
 from jdrkf._nonlinear import NonlinearModel
+from jdrkf.experiments.wang_nonlinear import growth_f, growth_h
 from jdrkf.filters import _resampling as rs
 from jdrkf.filters._particle import BootstrapPF
 
@@ -125,18 +126,9 @@ def test_resampling_bad_input(getkey):
 # --------------------------------------------------------------------------- models
 
 
-def _growth_f(x, t):
-    k = (t + 1).astype(x.dtype)
-    return x / 2 + 25 * x / (1 + x**2) + 8 * jnp.cos(1.2 * k)
-
-
-def _growth_h(x, t):
-    return x**2 / 20
-
-
 def _growth_model():
     # module-level f, h: equal static fields, so jitted filter calls are shared across tests
-    return NonlinearModel(_growth_f, _growth_h, jnp.array([[10.0]]), jnp.array([[1.0]]))
+    return NonlinearModel(growth_f, growth_h, jnp.array([[10.0]]), jnp.array([[1.0]]))
 
 
 GROWTH_T, GROWTH_N = 30, 500
@@ -367,7 +359,7 @@ def test_grad_without_resampling_matches_finite_differences():
     key = jax.random.key(3)
 
     def mse(s, threshold):
-        mdl = NonlinearModel(_growth_f, _growth_h, s[0] * model.Q, s[1] * model.R)
+        mdl = NonlinearModel(growth_f, growth_h, s[0] * model.Q, s[1] * model.R)
         res = BootstrapPF(200, ess_threshold=threshold)(mdl, prior, ys, key)
         return jnp.mean((res.filtered_means - xs) ** 2)
 

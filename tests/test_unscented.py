@@ -16,6 +16,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 import jdrkf
 from jdrkf._nonlinear import NonlinearModel, _simulate_nonlinear
+from jdrkf.experiments.wang_nonlinear import growth_f, growth_h
 from jdrkf.filters._unscented import EnsembleKF, UnscentedKF, merwe_weights, sigma_points
 
 from oracles import numpy_kalman_filter
@@ -26,15 +27,6 @@ run_key = eqx.filter_jit(lambda flt, model, prior, ys, key: flt(model, prior, ys
 
 
 # --------------------------------------------------------------------------- models
-
-
-def growth_f(x, t):
-    k = (t + 1).astype(x.dtype)
-    return x / 2 + 25 * x / (1 + x**2) + 8 * jnp.cos(1.2 * k)
-
-
-def growth_h(x, t):
-    return x**2 / 20
 
 
 def np_growth_f(x, t):

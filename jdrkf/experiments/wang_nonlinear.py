@@ -79,12 +79,14 @@ PAPER_GROWTH = {
 }
 
 
-def _growth_f(x, t):
+def growth_f(x, t):
+    """Seed 003, Section V-A: `x/2 + 25x/(1 + x²) + 8 cos(1.2 k)`, `k = t + 1`."""
     k = (t + 1).astype(x.dtype)
     return x / 2 + 25 * x / (1 + x**2) + 8 * jnp.cos(1.2 * k)
 
 
-def _h_nominal(x, t):
+def growth_h(x, t):
+    """Seed 003, Section V-A: the nominal measurement `x²/20`."""
     return x**2 / 20
 
 
@@ -95,7 +97,7 @@ def _h_true(x, t):
 def growth_models(dtype=None) -> dict[str, NonlinearModel]:
     """`{"true", "nominal"}` growth models (additive Gaussian noise)."""
     q, r = jnp.asarray([[GROWTH_Q]], dtype), jnp.asarray([[GROWTH_R]], dtype)
-    return {"true": NonlinearModel(_growth_f, _h_true, q, r), "nominal": NonlinearModel(_growth_f, _h_nominal, q, r)}
+    return {"true": NonlinearModel(growth_f, _h_true, q, r), "nominal": NonlinearModel(growth_f, growth_h, q, r)}
 
 
 def _point_mass(n, dtype=None, mean=None):
@@ -203,7 +205,7 @@ def _h_inside(x, v, t):
 
 
 def _growth_f_general(x, w, t):
-    return _growth_f(x, t) + w
+    return growth_f(x, t) + w
 
 
 def run_methods(runs: int = 100, seed: int = 0, progress: bool = False, curves: bool = True, *, particles: int = METHODS_PARTICLES, radii=(0.05, 0.2)) -> Report:
@@ -220,7 +222,7 @@ def run_methods(runs: int = 100, seed: int = 0, progress: bool = False, curves: 
     keys = jax.random.split(jax.random.fold_in(key, 1), runs)
     # Var[(x + v)²/20 | x] = (4x² + 2)/400: the PF's additive R is its average over the simulated states.
     r_add = float(np.mean((4 * np.asarray(traj.states) ** 2 + 2) / 400))
-    additive = NonlinearModel(_growth_f, _h_nominal, q, jnp.asarray([[r_add]]))
+    additive = NonlinearModel(growth_f, growth_h, q, jnp.asarray([[r_add]]))
     vals = {"PF (additive assumption)": _rtamse(traj.states, _run_batch(_pf(particles), additive, prior, traj.observations, keys), [0])}
     for rad in radii:
         flt = DRParticleFilter(particles, likelihood="wasserstein_augmented", likelihood_radius=rad, num_likelihood_particles=50, resampling="multinomial", ess_threshold=1.0, throw=False)
@@ -229,7 +231,7 @@ def run_methods(runs: int = 100, seed: int = 0, progress: bool = False, curves: 
         rows.append(Row.from_values(name, "RTAMSE [non-additive y = (x+v)²/20]", None, v))
     notes.append(f"(a) the PF's additive variance R = {r_add:.3g} matches Var[y | x] on average over the simulated states (an oracle-informed choice in its favour).")
     # (b) measurement outliers.
-    true = NonlinearModel(_growth_f, _h_nominal, q, r, measurement_noise=OutlierNoise(r, OUTLIER_P, OUTLIER_MAGNITUDE))
+    true = NonlinearModel(growth_f, growth_h, q, r, measurement_noise=OutlierNoise(r, OUTLIER_P, OUTLIER_MAGNITUDE))
     nominal = growth_models()["nominal"]
     traj = _simulate_nonlinear(jax.random.fold_in(key, 2), true, _point_mass(1), GROWTH_STEPS, runs)
     filters = {
