@@ -235,7 +235,7 @@ class AbstractFilter(eqx.Module):
         def run(flt):
             return jax.vmap(lambda y, k, u: flt(model, prior, y, k, inputs=u))(ys, keys, inputs)
 
-        if not (self.shared_covariance and getattr(self, "nan_as_missing", False)):
+        if not (self.shared_covariance and self.nan_as_missing):
             return run(self)
         dense = copy.copy(self)  # the same filter, with the masking of missing rows compiled out
         object.__setattr__(dense, "nan_as_missing", False)
