@@ -26,6 +26,7 @@ __all__ = [
     "cholesky",
     "cho_solve",
     "psd_solve",
+    "psd_inv",
     "psd_sqrt",
     "bures_distance",
     "bures_distance_squared",
@@ -119,6 +120,26 @@ def psd_solve(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n ..."]) -> Float
     convention); callers turn that into a result code.
     """
     return cho_solve(cholesky(symmetrize(a)), b)
+
+
+@jax.custom_jvp
+def psd_inv(a: Float[ArrayLike, "n n"]) -> Float[Array, "n n"]:
+    """Inverse of a symmetric positive-definite matrix, for solvers that need it as a
+    matrix (e.g. `T = (I − θsD)⁻¹`): `psd_solve(a, I)`, symmetrized.
+
+    Derivative `−X dA X` (`X = a⁻¹`, `dA` symmetrized): matrix products only, so a forward-mode Jacobian
+    over many tangents is a few batched products rather than one triangular solve
+    per tangent. NaNs when `a` is not numerically positive definite.
+    """
+    a = jnp.asarray(a)
+    return symmetrize(psd_solve(a, jnp.eye(a.shape[-1], dtype=a.dtype)))
+
+
+@psd_inv.defjvp
+def _psd_inv_jvp(primals, tangents):
+    (a,), (da,) = primals, tangents
+    x = psd_inv(a)
+    return x, -x @ symmetrize(da) @ x
 
 
 @jax.custom_jvp
