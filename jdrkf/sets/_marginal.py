@@ -148,12 +148,24 @@ def _whitening(cov, n, dims):
     return jnp.concatenate(rows, axis=0)
 
 
+@jax.custom_jvp
+def _psd_solve_inv_jvp(a, b):
+    return linalg.psd_solve(a, b)
+
+
+@_psd_solve_inv_jvp.defjvp
+def _psd_solve_inv_jvp_rule(primals, tangents):
+    (a, b), (da, db) = primals, tangents
+    x = linalg.psd_solve(a, b)
+    return x, linalg.psd_inv(a) @ (db - linalg.symmetrize(da) @ x)
+
+
 def _objective(g, n):
     """`f(Z) = Tr(S/S_yy)`, `S = G Z Gᵀ`, and `∇f = Gᵀ[I, −K]ᵀ[I, −K]G` (algorithms.md §0)."""
 
     def fg(z):
         s = linalg.symmetrize(g @ z @ g.T)
-        k = linalg.psd_solve(s[n:, n:], s[n:, :n]).T
+        k = _psd_solve_inv_jvp(s[n:, n:], s[n:, :n]).T
         value = jnp.trace(s[:n, :n]) - jnp.sum(k * s[:n, n:])
         e = jnp.concatenate([jnp.eye(n, dtype=z.dtype), -k], axis=1) @ g
         return value, linalg.symmetrize(e.T @ e)
@@ -281,9 +293,16 @@ def _projected_gradient(fg, proj, z0, rtol, max_iter):
 # ----------------------------------------------------------------- barrier polish
 
 
+@jax.custom_jvp
 def _logdet(a):
     chol = linalg.cholesky(linalg.symmetrize(a))
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))  # NaN if not positive definite
+
+
+@_logdet.defjvp
+def _logdet_jvp(primals, tangents):
+    (a,), (da,) = primals, tangents
+    return _logdet(a), jnp.sum(linalg.psd_inv(a) * linalg.symmetrize(da))  # Tr(A⁻¹ dA)
 
 
 def _barrier_fn(kind, n, dims, blocks, tri):
@@ -313,8 +332,7 @@ def _barrier_fn(kind, n, dims, blocks, tri):
 
     weights = np.where(tri[0] == tri[1], 1.0, 2.0)
 
-    def inv(a):
-        return linalg.psd_solve(a, jnp.eye(a.shape[-1], dtype=a.dtype))
+    inv = linalg.psd_inv  # derivative −X dA X: the Hessian by jacfwd is batched products
 
     def dF(v, g, params, mu):
         """Closed-form gradient of `F` in the upper-triangle coordinates `v`."""
