@@ -73,7 +73,7 @@ class Wasserstein(AbstractAmbiguitySet):
         rho = self.theta.astype(nominal.dtype)
         s = multiplier
         eye = jnp.eye(nominal.shape[-1], dtype=nominal.dtype)
-        t = linalg.symmetrize(linalg.psd_solve(eye - rho * s * direction, eye))  # I − θsD ≻ 0 in the bracket
+        t = linalg.psd_inv(eye - rho * s * direction)  # I − θsD ≻ 0 in the bracket
         dt = direction @ t
         q = s * s * jnp.trace(nominal @ dt @ dt) - 1.0
         active = jnp.trace(direction) > 0
