@@ -27,6 +27,7 @@ __all__ = [
     "cho_solve",
     "psd_solve",
     "psd_inv",
+    "psd_solve_fwd",
     "psd_sqrt",
     "bures_distance",
     "bures_distance_squared",
@@ -140,6 +141,22 @@ def _psd_inv_jvp(primals, tangents):
     (a,), (da,) = primals, tangents
     x = psd_inv(a)
     return x, -x @ symmetrize(da) @ x
+
+
+@jax.custom_jvp
+def psd_solve_fwd(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n ..."]) -> Float[Array, "n ..."]:
+    """`psd_solve(a, b)` (the backward-stable Cholesky solve) with the derivative
+    `dx = a⁻¹(db − dA x)` taken through `psd_inv(a)`: for residuals differentiated by
+    `jax.jacfwd` over many tangents, whose solves would otherwise run one triangular
+    solve per tangent."""
+    return psd_solve(a, b)
+
+
+@psd_solve_fwd.defjvp
+def _psd_solve_fwd_jvp(primals, tangents):
+    (a, b), (da, db) = primals, tangents
+    x = psd_solve(a, b)
+    return x, psd_inv(a) @ (db - symmetrize(da) @ x)
 
 
 @jax.custom_jvp

@@ -63,6 +63,22 @@ def test_psd_inv_value_and_directional_derivative(rng, d):
     assert np.all(np.isnan(linalg.psd_inv(-np.eye(d))))
 
 
+def test_psd_solve_fwd_value_and_derivatives(rng):
+    # Same value as psd_solve; its inverse-based derivative vs central differences of NumPy's
+    # solve, in forward (jvp in both arguments) and reverse mode.
+    a, b = _spd(rng, 5), rng.normal(size=(5, 2))
+    da, db = rng.normal(size=(5, 5)), rng.normal(size=(5, 2))
+    da = da + da.T
+    np.testing.assert_allclose(linalg.psd_solve_fwd(a, b), np.linalg.solve(a, b), rtol=1e-12, atol=1e-12)
+    _, tangent = jax.jvp(linalg.psd_solve_fwd, (jnp.asarray(a), jnp.asarray(b)), (jnp.asarray(da), jnp.asarray(db)))
+    eps = 1e-6
+    fd = (np.linalg.solve(a + eps * da, b + eps * db) - np.linalg.solve(a - eps * da, b - eps * db)) / (2 * eps)
+    np.testing.assert_allclose(tangent, fd, rtol=1e-6, atol=1e-8)
+    w = rng.normal(size=(5, 2))
+    gb = jax.grad(lambda bb: jnp.sum(w * linalg.psd_solve_fwd(jnp.asarray(a), bb)))(jnp.asarray(b))
+    np.testing.assert_allclose(gb, np.linalg.solve(a, w), rtol=1e-10, atol=1e-12)
+
+
 def test_bures_distance_matches_sqrtm_formula(rng):
     for d in [1, 2, 5]:
         a, b = _spd(rng, d), _spd(rng, d)

@@ -140,7 +140,8 @@ def _transport(d, h, nominal, t):
     """For `D` and the weight `h` of one Gelbrich term: `Y = (h − tD)⁻¹D` and
     `∇_D ⟨D(h − tD)⁻¹D, nominal⟩ = YΣ̂ + Σ̂Yᵀ + tYΣ̂Yᵀ`, so that the worst case is
     `(h − tD)⁻¹hΣ̂h(h − tD)⁻¹ = Σ̂ + t·∇` (exactly, also at `t = 0`)."""
-    y = _cho_solve(_chol(h - t * d), d)
+    with linalg.lapack_only():  # see `_chol`; tangents of the Newton Jacobian: batched products
+        y = linalg.psd_solve_fwd(h - t * d, d)
     ys = y @ nominal
     return y, linalg.symmetrize(ys + ys.T + t * ys @ y.T)
 

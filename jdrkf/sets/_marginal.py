@@ -148,24 +148,12 @@ def _whitening(cov, n, dims):
     return jnp.concatenate(rows, axis=0)
 
 
-@jax.custom_jvp
-def _psd_solve_inv_jvp(a, b):
-    return linalg.psd_solve(a, b)
-
-
-@_psd_solve_inv_jvp.defjvp
-def _psd_solve_inv_jvp_rule(primals, tangents):
-    (a, b), (da, db) = primals, tangents
-    x = linalg.psd_solve(a, b)
-    return x, linalg.psd_inv(a) @ (db - linalg.symmetrize(da) @ x)
-
-
 def _objective(g, n):
     """`f(Z) = Tr(S/S_yy)`, `S = G Z Gᵀ`, and `∇f = Gᵀ[I, −K]ᵀ[I, −K]G` (algorithms.md §0)."""
 
     def fg(z):
         s = linalg.symmetrize(g @ z @ g.T)
-        k = _psd_solve_inv_jvp(s[n:, n:], s[n:, :n]).T
+        k = linalg.psd_solve_fwd(s[n:, n:], s[n:, :n]).T
         value = jnp.trace(s[:n, :n]) - jnp.sum(k * s[:n, n:])
         e = jnp.concatenate([jnp.eye(n, dtype=z.dtype), -k], axis=1) @ g
         return value, linalg.symmetrize(e.T @ e)
