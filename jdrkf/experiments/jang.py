@@ -99,7 +99,7 @@ def run_convergence(runs: int, seed: int, progress: bool = False, curves: bool =
 
     rng = np.random.default_rng(seed)
     a, c, w, v, th, rejected = random_systems(rng, runs)
-    # One system after another: the solvers call LAPACK (jaxlib's batched LAPACK can deadlock under vmap).
+    # One system after another: under vmap every solve would run the slowest one's iterations.
     batch = jax.jit(lambda *x: jax.lax.map(lambda y: _gap_curve(*y, CONVERGENCE_STEPS), x))
     gaps, _, oks = batch(a, c, w, v, th)
     final = np.asarray(gaps)[:, -1]
@@ -233,9 +233,10 @@ def _run_batch(flt, qs, rs, keys, setting_laws, true_model, controller, referenc
         return res.cost(LQR_Q, LQR_R), res.mse(), jnp.all(ok[1:]), ok[0]
 
     if isinstance(flt, (BCOTKF, SteadyStateDRKF)):
-        # One run after another (`lax.map`): these solvers call LAPACK, and jaxlib 0.10's
-        # batched LAPACK kernels (ParallelBatchMap) can deadlock the CPU thread pool under
-        # `vmap` — a 200-run vmap of BCOT hung with every thread waiting.
+        # One run after another (`lax.map`): each run solves for its own EM nominals with
+        # while-loop Newton solvers, which under `vmap` run every run's solve for the slowest
+        # one's iterations. (Before `import jdrkf` set PJRT_NPROC, jaxlib 0.10's batched LAPACK
+        # could also deadlock here: a 200-run vmap of BCOT hung.)
         return jax.lax.map(lambda x: one(*x), (qs, rs, keys))
     return jax.vmap(one)(qs, rs, keys)
 
