@@ -79,6 +79,18 @@ def test_psd_solve_fwd_value_and_derivatives(rng):
     np.testing.assert_allclose(gb, np.linalg.solve(a, w), rtol=1e-10, atol=1e-12)
 
 
+def test_psd_logdet_value_and_derivative(rng):
+    a = _spd(rng, 6)
+    da = rng.normal(size=(6, 6))
+    da = da + da.T
+    np.testing.assert_allclose(linalg.psd_logdet(a), np.linalg.slogdet(a)[1], rtol=1e-12)
+    _, tangent = jax.jvp(linalg.psd_logdet, (jnp.asarray(a),), (jnp.asarray(da),))
+    eps = 1e-6
+    fd = (np.linalg.slogdet(a + eps * da)[1] - np.linalg.slogdet(a - eps * da)[1]) / (2 * eps)
+    np.testing.assert_allclose(tangent, fd, rtol=1e-7)
+    assert np.isnan(linalg.psd_logdet(-np.eye(3)))
+
+
 def test_bures_distance_matches_sqrtm_formula(rng):
     for d in [1, 2, 5]:
         a, b = _spd(rng, d), _spd(rng, d)

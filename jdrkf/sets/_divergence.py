@@ -25,9 +25,10 @@ def _phi(x):
     return jnp.where(small, series, xl / (1.0 - xl) + jnp.log1p(-xl))
 
 
-def _phi_trace(x, chol_a):
-    """`Tr φ(X)` for symmetric `X` with `I − X = L Lᵀ` (`chol_a`), written with solves and
-    matrix powers only (differentiable with repeated eigenvalues)."""
+def _phi_trace(x, a_inv, logdet_a):
+    """`Tr φ(X)` for symmetric `X` with `A = I − X` (inverse `a_inv`, `log det A`),
+    written with inverses and matrix powers only (differentiable with repeated
+    eigenvalues)."""
     d = x.shape[-1]
     small = jnp.sqrt(jnp.sum(x * x)) < _SERIES_BELOW
     xs = jnp.where(small, x, 0.0)
@@ -35,8 +36,7 @@ def _phi_trace(x, chol_a):
     for k in range(2, _SERIES_TERMS):
         power = power @ xs
         series = series + (1.0 - 1.0 / k) * jnp.trace(power)
-    eye = jnp.eye(d, dtype=x.dtype)
-    closed = jnp.trace(linalg.cho_solve(chol_a, eye)) - d + 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_a)))
+    closed = jnp.trace(a_inv) - d + logdet_a
     return jnp.where(small, series, closed)
 
 
@@ -101,8 +101,7 @@ class KL(AbstractAmbiguitySet):
         r = linalg.cholesky(nominal)
         w = linalg.symmetrize(r.T @ direction @ r)
         a = jnp.eye(nominal.shape[-1], dtype=nominal.dtype) - t * w
-        chol_a = linalg.cholesky(a)
-        a_inv_rt = linalg.cho_solve(chol_a, r.T)
-        g = 0.5 * _phi_trace(t * w, chol_a) - c
+        a_inv = linalg.psd_inv(a)  # derivatives by products: the Newton/IFT Jacobians batch
+        g = 0.5 * _phi_trace(t * w, a_inv, linalg.psd_logdet(a)) - c
         active = (c > 0) & (jnp.trace(w) > 0)
-        return cov - linalg.symmetrize(r @ a_inv_rt), jnp.where(active, g, t)
+        return cov - linalg.symmetrize(r @ a_inv @ r.T), jnp.where(active, g, t)

@@ -281,18 +281,6 @@ def _projected_gradient(fg, proj, z0, rtol, max_iter):
 # ----------------------------------------------------------------- barrier polish
 
 
-@jax.custom_jvp
-def _logdet(a):
-    chol = linalg.cholesky(linalg.symmetrize(a))
-    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))  # NaN if not positive definite
-
-
-@_logdet.defjvp
-def _logdet_jvp(primals, tangents):
-    (a,), (da,) = primals, tangents
-    return _logdet(a), jnp.sum(linalg.psd_inv(a) * linalg.symmetrize(da))  # Tr(A⁻¹ dA)
-
-
 def _barrier_fn(kind, n, dims, blocks, tri):
     dim = n + sum(dims)
 
@@ -307,14 +295,14 @@ def _barrier_fn(kind, n, dims, blocks, tri):
         z = unvec(v)
         fg = _objective(g, n)
         f0 = fg(jnp.eye(dim, dtype=v.dtype))[0]
-        bar = _logdet(z)
+        bar = linalg.psd_logdet(z)
         for i, idx in enumerate(blocks):
             b = z[np.ix_(idx, idx)]
             eye = jnp.eye(len(idx), dtype=v.dtype)
             if kind == "moment":
-                bar = bar + _logdet(b - params[0][i] * eye) + _logdet(params[1][i] * eye - b)
+                bar = bar + linalg.psd_logdet(b - params[0][i] * eye) + linalg.psd_logdet(params[1][i] * eye - b)
             else:
-                gap = 2.0 * params[0][i] - (jnp.trace(b) - _logdet(b) - len(idx))
+                gap = 2.0 * params[0][i] - (jnp.trace(b) - linalg.psd_logdet(b) - len(idx))
                 bar = bar + jnp.log(gap)
         return fg(z)[0] / f0 + mu * bar
 
@@ -334,7 +322,7 @@ def _barrier_fn(kind, n, dims, blocks, tri):
             if kind == "moment":
                 gb = inv(b - params[0][i] * eye) - inv(params[1][i] * eye - b)
             else:
-                gap = 2.0 * params[0][i] - (jnp.trace(b) - _logdet(b) - len(idx))
+                gap = 2.0 * params[0][i] - (jnp.trace(b) - linalg.psd_logdet(b) - len(idx))
                 gb = (inv(b) - eye) / gap
             gz = gz.at[np.ix_(idx, idx)].add(mu * gb)
         return linalg.symmetrize(gz)[tri] * jnp.asarray(weights, v.dtype)
