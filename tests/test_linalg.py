@@ -89,6 +89,11 @@ def test_psd_logdet_value_and_derivative(rng):
     fd = (np.linalg.slogdet(a + eps * da)[1] - np.linalg.slogdet(a - eps * da)[1]) / (2 * eps)
     np.testing.assert_allclose(tangent, fd, rtol=1e-7)
     assert np.isnan(linalg.psd_logdet(-np.eye(3)))
+    # jit x vmap x grad: ∇ log det A = A⁻¹ (symmetric A), batched.
+    batch = np.stack([_spd(rng, 6) for _ in range(3)])
+    grads = jax.jit(jax.vmap(jax.grad(linalg.psd_logdet)))(jnp.asarray(batch))
+    np.testing.assert_allclose(grads, np.linalg.inv(batch), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.vmap(linalg.psd_inv))(jnp.asarray(batch)), np.linalg.inv(batch), rtol=1e-10, atol=1e-12)
 
 
 def test_bures_distance_matches_sqrtm_formula(rng):
