@@ -18,7 +18,7 @@ from .._gaussian import Gaussian
 from .._models import LinearModel
 from ..sets._base import radius
 from ..sets._solve import _dense_solve, default_rtol, worst_case
-from ..sets._wasserstein import Wasserstein
+from ..sets._wasserstein import Wasserstein, _oracle_residual
 from ._base import AbstractFilter
 from ._dr import _decoupled_step
 from ._kalman import SteadyStateGain, _constant_gain_step
@@ -171,11 +171,11 @@ def _stationary_residual(a, h, w, v, theta_x, theta_v):
     `Λ = D_x T_x` (the sensitivity of the weighted value to the pseudo-nominal, i.e. the
     multiplier of `Σ̂⁻ = A Σ Aᵀ + Σ̂w`). Inverses are `linalg.psd_inv`, whose
     derivative is two products: the dense Jacobian by `jacfwd` is then a few batched
-    products.
+    products. `T_x` is shared by the oracle's residual and `Λ`.
     """
     n, m = a.shape[0], h.shape[0]
     pack, unpack = _layout(n, m)
-    eye_n, eye_m = jnp.eye(n, dtype=a.dtype), jnp.eye(m, dtype=a.dtype)
+    eye_n = jnp.eye(n, dtype=a.dtype)
 
     def residual(x):
         prior, noise, mx, mv, lam = unpack(x)
@@ -185,24 +185,21 @@ def _stationary_residual(a, h, w, v, theta_x, theta_v):
         weight = eye_n + a.T @ lam @ a
         dx = e.T @ weight @ e
         dv = gain.T @ weight @ gain
-        tx = linalg.psd_inv(eye_n - theta_x * mx * dx)
-        tv = linalg.psd_inv(eye_m - theta_v * mv * dv)
-        dtx, dtv = dx @ tx, dv @ tv
-        qx = jnp.where(jnp.trace(dx) > 0, mx * mx * jnp.sum(nominal * (dtx @ dtx).T) - 1.0, mx - 1.0)
-        qv = jnp.where(jnp.trace(dv) > 0, mv * mv * jnp.sum(v * (dtv @ dtv).T) - 1.0, mv - 1.0)
-        return pack(prior - tx @ nominal @ tx, noise - tv @ v @ tv, qx, qv, lam - dtx)
+        r_prior, qx, tx = _oracle_residual(theta_x, prior, mx, dx, nominal)
+        r_noise, qv, _ = _oracle_residual(theta_v, noise, mv, dv, v)
+        return pack(r_prior, r_noise, qx, qv, lam - dx @ tx)
 
     return residual
 
 
 def _weighted_gradients(prior, noise, lam, a, h):
-    """Gain and the gradients `D_x = (I − KC)ᵀŴ(I − KC)`, `D_v = KᵀŴK` of
-    `Tr(Ŵ post(Σ⁻, Σv))`, `Ŵ = I + AᵀΛA`."""
+    """Posterior `post(Σ⁻, Σv)` and the gradients `D_x = (I − KC)ᵀŴ(I − KC)`, `D_v = KᵀŴK`
+    of `Tr(Ŵ post(Σ⁻, Σv))`, `Ŵ = I + AᵀΛA`."""
     eye = jnp.eye(a.shape[0], dtype=a.dtype)
-    _, gain = _posterior(prior, noise, h)
+    post, gain = _posterior(prior, noise, h)
     e = eye - gain @ h
     weight = eye + a.T @ lam @ a
-    return gain, linalg.symmetrize(e.T @ weight @ e), linalg.symmetrize(gain.T @ weight @ gain)
+    return post, linalg.symmetrize(e.T @ weight @ e), linalg.symmetrize(gain.T @ weight @ gain)
 
 
 def _initial_guess(a, h, w, v):
@@ -239,8 +236,7 @@ def _oracle_step(a, h, w, v, theta_x, theta_v, x):
     oracles for the gradients at `x`, then `Λ = D_x T_x` (a start inside the domain)."""
     pack, unpack = _layout(a.shape[0], h.shape[0])
     prior, noise, _, _, lam = unpack(x)
-    post, _ = _posterior(prior, noise, h)
-    _, dx, dv = _weighted_gradients(prior, noise, lam, a, h)
+    post, dx, dv = _weighted_gradients(prior, noise, lam, a, h)
     prior, mx = Wasserstein(theta_x).oracle(dx, linalg.symmetrize(a @ post @ a.T + w))
     noise, mv = Wasserstein(theta_v).oracle(dv, v)
     # The gradients at the new covariances differ: keep `I − θ s D ≻ 0` there.
