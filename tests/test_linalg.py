@@ -77,6 +77,12 @@ def test_psd_solve_fwd_value_and_derivatives(rng):
     w = rng.normal(size=(5, 2))
     gb = jax.grad(lambda bb: jnp.sum(w * linalg.psd_solve_fwd(jnp.asarray(a), bb)))(jnp.asarray(b))
     np.testing.assert_allclose(gb, np.linalg.solve(a, w), rtol=1e-10, atol=1e-12)
+    # jit x vmap x grad (in the matrix): ∂/∂A Σ w∘A⁻¹b = −A⁻¹ w xᵀ, symmetrized, per batch member.
+    batch = np.stack([_spd(rng, 5) for _ in range(3)])
+    ga = jax.jit(jax.vmap(jax.grad(lambda aa: jnp.sum(w * linalg.psd_solve_fwd(aa, jnp.asarray(b))))))(jnp.asarray(batch))
+    for ai, gi in zip(batch, np.asarray(ga), strict=True):
+        m = -np.linalg.solve(ai, w) @ np.linalg.solve(ai, b).T
+        np.testing.assert_allclose(gi, 0.5 * (m + m.T), rtol=1e-9, atol=1e-12)
 
 
 def test_psd_logdet_value_and_derivative(rng):
