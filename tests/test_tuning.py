@@ -30,7 +30,11 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+# wasserstein-theta_x covers the Wasserstein path in the default tier (suite time budget).
+_SLOW_CASES = {"wasserstein-theta_v"}
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in _SLOW_CASES else n for n in sorted(CASES)])
 def test_gradient_matches_finite_differences(objective, name):
     make, x0 = CASES[name]
     f = jax.jit(lambda x: objective(make(x)))

@@ -108,7 +108,7 @@ def _cumulative(lw: Array) -> Array:
     integers (`_exact_cumsum`) and monotone in any summation order. The rounded weights
     are within `N 2^-(p+2)` of the exact ones in total variation, comparable to a
     floating-point cumulative sum (whose increments resolve `2^-(p+1)` of the total near
-    1; 0.9-1.8x its error in `tests/test_particle.py`); a weight below about `2^-(p+2)`
+    1; at most 1.8x its error in `tests/test_particle.py`); a weight below about `2^-(p+2)`
     of the total rounds to zero and is never drawn."""
     n = lw.shape[0]
     p = jnp.finfo(lw.dtype).nmant
@@ -118,7 +118,8 @@ def _cumulative(lw: Array) -> Array:
     m = jnp.max(lw)
     e = jnp.exp(lw - jnp.where(jnp.isfinite(m), m, jnp.zeros_like(m)))
     s = jnp.sum(e)
-    q = jnp.round(e * jnp.where(s > 0, (2.0 ** (p + 1) - n) / s, 0.0).astype(lw.dtype))  # Σ q < 2^(p+1)
+    # Σ q < 2^(p+1) (all partial sums exact) even if `s` is off by N rounding errors.
+    q = jnp.round(e * jnp.where(s > 0, (2.0 ** (p + 1) - 2 * n) / s, 0.0).astype(lw.dtype))
     c = _exact_cumsum(q)
     # c / c[-1] may be computed as c * (1 / c[-1]), so the exact total is mapped to 1 explicitly
     one = jnp.ones_like(c)
