@@ -121,7 +121,7 @@ def test_resampling_bad_input(getkey):
         rs.systematic(getkey(), jnp.zeros((3, 2)))
     with pytest.raises(ValueError, match="log_weights"):
         rs.multinomial(getkey(), jnp.zeros(0))
-    # float32 weights resolve 2^-23 of the total: too coarse beyond 2^22 particles
+    # float32 weights resolve 2^-24 of the total: too coarse beyond 2^22 particles
     too_many = jax.ShapeDtypeStruct((2**22 + 1,), jnp.float32)
     with pytest.raises(ValueError, match="use float64"):
         jax.eval_shape(rs.systematic, jax.random.key(0), too_many)
@@ -139,7 +139,7 @@ def test_exact_cumsum_matches_numpy(n):
     np.testing.assert_array_equal(out, np.cumsum(a.astype(np.int64), axis=1).astype(np.float32))
 
 
-def _old_float_cumulative(lw):
+def _float_cumulative(lw):
     """The plain float cumulative sum `cumsum(w) / Σ w` (sequential, float32)."""
     w = np.exp(lw - lw.max())
     c = np.cumsum(w, dtype=np.float32)
@@ -164,7 +164,7 @@ def test_cumulative_weights_float32():
         inc = np.diff(np.concatenate([[0.0], c.astype(np.float64)]))
         assert inc[0] == 0 and inc[17] == 0 and inc[n - 1] == 0
         tv = 0.5 * np.abs(inc - w).sum()
-        tv_float = 0.5 * np.abs(np.diff(np.concatenate([[0.0], _old_float_cumulative(lw).astype(np.float64)])) - w).sum()
+        tv_float = 0.5 * np.abs(np.diff(np.concatenate([[0.0], _float_cumulative(lw).astype(np.float64)])) - w).sum()
         assert tv <= n * 2.0**-25 and tv <= 2 * tv_float, (n, spread, tv, tv_float)
         np.testing.assert_allclose(c, np.cumsum(w), rtol=0, atol=n * 2.0**-23)
     np.testing.assert_array_equal(np.asarray(rs._cumulative(jnp.full(4, -jnp.inf))), np.ones(4))
