@@ -15,7 +15,7 @@ from . import metrics as _metrics
 from ._gaussian import Gaussian
 from ._models import LinearModel
 from ._simulate import Trajectories
-from .filters._base import AbstractFilter, FilterResult, RESULTS
+from .filters._base import AbstractFilter, FilterResult, RESULTS, with_outputs
 
 
 class Clairvoyant(eqx.Module):
@@ -38,14 +38,10 @@ Metric = Callable[[Trajectories, FilterResult], Array]
 DEFAULT_METRICS: dict[str, Metric] = {"rmse": lambda traj, res: _metrics.rmse(traj.states, res.filtered_means)}
 
 
-def _run_per_model(flt, model, prior, transition_matrices, ys, keys):
-    """`flt` on runs that each have their own transition matrices (a clairvoyant filter)."""
-    return jax.vmap(lambda F, y, k: flt(eqx.tree_at(lambda mm: mm.F, model, F), prior, y, k))(transition_matrices, ys, keys)
-
-
 def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, metrics, missing, clean_missing):
     """`missing`, `clean_missing` (static): whether the observations / the outlier-free
-    ones hold any NaN, decided eagerly so that `batch` compiles one branch only."""
+    ones hold any NaN (then treated as missing), decided eagerly: without them no filter
+    gets a mask, so plain `vmap` shares the covariance recursion across runs."""
     out = {}
     for name, flt in filters.items():
         mdl, ys, per_run_F, nan = model, chunk.observations, None, missing
@@ -55,10 +51,13 @@ def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, met
             if flt.clean:
                 ys, nan = chunk.clean_observations, clean_missing
             flt = flt.filter
-        if per_run_F is None:  # one model for all runs: `batch` shares what it can across them
-            res = flt._batch(mdl, prior, ys, keys, None, nan)
-        else:
-            res = _run_per_model(flt, mdl, prior, per_run_F, ys, keys)
+        flt = with_outputs(flt, "all")  # the metrics read what they need; XLA drops the rest
+
+        def run(y, k, F, flt=flt, mdl=mdl, nan=nan):
+            m = mdl if F is None else eqx.tree_at(lambda mm: mm.F, mdl, F)
+            return flt(m, prior, y, k, observed=~jnp.isnan(y) if nan else None)
+
+        res = jax.vmap(run)(ys, keys, per_run_F)
         vals = jax.vmap(lambda traj, r: {mname: fn(traj, r) for mname, fn in metrics.items()})(chunk, res)
         out[name] = {**vals, "success": res.result == RESULTS.successful}
     return out
@@ -87,10 +86,13 @@ def montecarlo(
     - `model`: the nominal model the filters use; `true_model`: the simulated one
       (for `Clairvoyant` entries; defaults to `model`).
     - `prior`: the filters' law of `x_0`.
-    - `trajectories`: from `jdrkf.simulate`.
+    - `trajectories`: from `jdrkf.simulate`. NaN entries of its observations are
+      missing data: each filter then gets `observed=~jnp.isnan(ys)`; without any, no
+      mask is passed and every filter shares its covariance recursion across runs.
     - `metrics`: name → `fn(trajectories, result) -> per-run value`, evaluated inside
       the vmapped run (so `trajectories` and `result` are those of one run); default
-      `{"rmse": ...}`. A `"success"` entry (result code is successful) is always added.
+      `{"rmse": ...}`. Every `FilterResult` field is available to them whatever the
+      filters' `outputs` (inside the compiled call XLA computes only what they read). A `"success"` entry (result code is successful) is always added.
     - `key`: base key for stochastic filters; run `r` gets `fold_in(key, r)` for
       every filter (common random numbers).
     - `chunk_size`: runs per compiled call, bounding memory; the run axis of each

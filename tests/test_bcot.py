@@ -14,8 +14,9 @@ from jdrkf.filters._bcot import BCOTKF, bcot_worst_case
 from bcot_oracle import bcot_sdp, budget, posterior_trace
 from oracles import numpy_kalman_filter
 
-# One compilation per filter structure / data shape (the radius is a traced field).
-run = eqx.filter_jit(lambda flt, model, prior, ys, inputs: flt(model, prior, ys, inputs=inputs))
+# One compilation per filter structure / data shape (the radius is a traced field). The
+# NaN entries of the test data are missing observations.
+run = eqx.filter_jit(lambda flt, model, prior, ys, inputs: flt(model, prior, ys, inputs=inputs, observed=~jnp.isnan(ys)))
 
 
 def _spd(rng, d, floor):
@@ -141,7 +142,7 @@ def test_zero_radius_is_kalman_filter():
     rng = np.random.default_rng(0)
     model = _model(rng)
     prior, ys, inputs = _data(rng, model)
-    res = run(BCOTKF(0.0), model, prior, ys, inputs)
+    res = run(BCOTKF(0.0, outputs="all"), model, prior, ys, inputs)
     ref = numpy_kalman_filter(prior.mean, prior.cov, ys, model.F, model.H, model.Q, model.R, G=model.G,
                               B=model.B, inputs=inputs, process_mean=model.process_mean, noise_mean=model.noise_mean)
     for key in ("filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances", "loglik_increments"):
@@ -153,7 +154,7 @@ def test_filter_step_uses_worst_case_and_predicts_once():
     model = _model(rng)
     prior, ys, inputs = _data(rng, model)
     radius = 0.3
-    res = run(BCOTKF(radius), model, prior, ys, inputs)
+    res = run(BCOTKF(radius, outputs="all"), model, prior, ys, inputs)
     assert res.result == jdrkf.RESULTS.successful
     # Step 1 from the prior: the SDP of (Σ_p, G Q Gᵀ, R) gives the posterior trace.
     f, g, h = (np.asarray(x) for x in (model.F, model.G, model.H))
@@ -191,8 +192,8 @@ def test_filter_vmap_over_runs_and_jit():
     model = _model(rng)
     prior, ys, inputs = _data(rng, model)
     ys_runs = np.stack([ys, ys + rng.normal(size=ys.shape), ys - 1.0])
-    flt = BCOTKF(0.5)
-    batched = eqx.filter_jit(jax.vmap(lambda y: flt(model, prior, y, inputs=inputs)))(ys_runs)
+    flt = BCOTKF(0.5, outputs="all")
+    batched = eqx.filter_jit(jax.vmap(lambda y: flt(model, prior, y, inputs=inputs, observed=~jnp.isnan(y))))(ys_runs)
     assert batched.filtered_means.shape == (3, 12, 3)
     for i in range(3):
         one = run(flt, model, prior, ys_runs[i], inputs)
@@ -240,7 +241,7 @@ def test_filter_gradients():
     prior, ys, inputs = _data(rng, model)
 
     def loss(flt, mdl):
-        res = flt(mdl, prior, ys, inputs=inputs)
+        res = flt(mdl, prior, ys, inputs=inputs, observed=~np.isnan(ys))
         return jnp.sum(res.filtered_means**2) + jnp.sum(jnp.trace(res.filtered_covariances, axis1=1, axis2=2))
 
     with_q = eqx.filter_jit(jax.grad(lambda q, flt: loss(flt, eqx.tree_at(lambda m: m.Q, model, q))))

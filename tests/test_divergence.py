@@ -32,8 +32,8 @@ def _random_stable(rng, n, radius=0.95):
 
 
 @jax.jit
-def _run_filter(filt, model, prior, ys):
-    return filt(model, prior, ys)
+def _run_filter(filt, model, prior, ys, observed=None):
+    return filt(model, prior, ys, observed=observed)
 
 
 # --- independent NumPy oracle of the published predictor (algorithms.md §C) ----------------
@@ -122,7 +122,7 @@ def test_matches_published_predictor(rng, system, tau):
     _, ys = numpy_simulate_lgssm(rng, m0, P0, F, H, Q, R, T)
     ys[::17] += 30.0  # a few outliers: the means then depend visibly on the gains
     ref = published_tau_predictor(m0, P0, ys, F, H, Q, R, tau, c)
-    res = _run_filter(TauKF(tau, c), jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(m0, P0), ys)
+    res = _run_filter(TauKF(tau, c, outputs="all"), jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(m0, P0), ys)
     assert res.result == jdrkf.RESULTS.successful
     assert np.all(ref["theta"] > 0)
     np.testing.assert_allclose(res.info["theta"], ref["theta"], rtol=1e-9)
@@ -140,7 +140,7 @@ def test_published_riccati_identity(rng):
     F, H, Q, R = _random_system(rng)
     n = F.shape[0]
     ys = rng.normal(size=(40, H.shape[0]))
-    res = _run_filter(TauKF(0.3, 0.1), jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(np.zeros(n), np.eye(n)), ys)
+    res = _run_filter(TauKF(0.3, 0.1, outputs="all"), jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(np.zeros(n), np.eye(n)), ys)
     for k in range(len(ys) - 1):
         V, Pi = res.predicted_covariances[k], res.filtered_covariances[k]
         S = H @ V @ H.T + R
@@ -168,12 +168,12 @@ _FIELDS = ["filtered_means", "filtered_covariances", "predicted_means", "predict
 @pytest.mark.parametrize("tau", [0.0, 0.5, 1.0])
 def test_zero_tolerance_is_the_kalman_filter(rng, tau):
     model, prior, ys = _kf_problem(rng)
-    kf = _run_filter(jdrkf.KalmanFilter(), model, prior, ys)
-    exact = _run_filter(TauKF(tau, 0.0), model, prior, ys)
+    kf = _run_filter(jdrkf.KalmanFilter(outputs="all"), model, prior, ys)
+    exact = _run_filter(TauKF(tau, 0.0, outputs="all"), model, prior, ys)
     for name in _FIELDS:
         np.testing.assert_array_equal(getattr(exact, name), getattr(kf, name), err_msg=name)
     np.testing.assert_array_equal(exact.info["theta"], 0.0)
-    near = _run_filter(TauKF(tau, 1e-12), model, prior, ys)
+    near = _run_filter(TauKF(tau, 1e-12, outputs="all"), model, prior, ys)
     assert np.all(near.info["theta"] > 0)
     for name in _FIELDS:
         np.testing.assert_allclose(getattr(near, name), getattr(kf, name), rtol=1e-5, atol=1e-6, err_msg=name)
@@ -182,7 +182,7 @@ def test_zero_tolerance_is_the_kalman_filter(rng, tau):
 @pytest.mark.parametrize("tau", [0.0, 0.3, 1.0])
 def test_least_favourable_covariance_dominates_nominal(rng, tau):
     model, prior, ys = _kf_problem(rng)
-    res = _run_filter(TauKF(tau, 0.2), model, prior, ys)
+    res = _run_filter(TauKF(tau, 0.2, outputs="all"), model, prior, ys)
     gap = np.linalg.eigvalsh(res.predicted_covariances - res.info["nominal_predicted_cov"])
     assert np.all(gap > 0)  # strictly: every eigenvalue of P is inflated when c > 0
     # and the filtered covariance exceeds the KF update of the same nominal prediction
@@ -260,8 +260,8 @@ def test_phi_is_accurate_everywhere():
 
 def test_risk_sensitive_zero_theta_is_the_kalman_filter(rng):
     model, prior, ys = _kf_problem(rng)
-    kf = _run_filter(jdrkf.KalmanFilter(), model, prior, ys)
-    rs = _run_filter(RiskSensitiveKF(0.0), model, prior, ys)
+    kf = _run_filter(jdrkf.KalmanFilter(outputs="all"), model, prior, ys)
+    rs = _run_filter(RiskSensitiveKF(0.0, outputs="all"), model, prior, ys)
     for name in _FIELDS:
         np.testing.assert_array_equal(getattr(rs, name), getattr(kf, name), err_msg=name)
     assert np.all(rs.info["valid"])
@@ -269,7 +269,7 @@ def test_risk_sensitive_zero_theta_is_the_kalman_filter(rng):
 
 def test_risk_sensitive_with_tau_kf_multipliers_is_tau_kf(rng):
     model, prior, ys = _kf_problem(rng)
-    tau_kf = _run_filter(TauKF(0.0, 0.1), model, prior, ys)
+    tau_kf = _run_filter(TauKF(0.0, 0.1, outputs="all"), model, prior, ys)
     state = prior
     step = jax.jit(lambda theta, state, y, t: RiskSensitiveKF(theta).step(model, state, y, t))
     for t in range(len(ys)):
@@ -282,16 +282,16 @@ def test_risk_sensitive_with_tau_kf_multipliers_is_tau_kf(rng):
     theta, P = 0.05, _random_spd(rng, 3)
     state = jdrkf.Gaussian(np.zeros(3), P)
     one_step = jdrkf.LinearModel(np.eye(3), np.eye(1, 3), np.zeros((3, 3)), np.eye(1))
-    _, out = RiskSensitiveKF(theta).step(one_step, state, jnp.full(1, jnp.nan), 0)
+    _, out = RiskSensitiveKF(theta).step(one_step, state, jnp.full(1, jnp.nan), 0, observed=jnp.zeros(1, bool))
     np.testing.assert_allclose(out.predicted.cov, np.linalg.inv(np.linalg.inv(P) - theta * np.eye(3)), rtol=1e-12)
 
 
 def test_risk_sensitive_breakdown_is_reported(rng):
     model, prior, ys = _kf_problem(rng)
     lam_max = np.linalg.eigvalsh(jdrkf.predict(model, prior, 0).cov).max()
-    ok = _run_filter(RiskSensitiveKF(0.5 / lam_max, throw=False), model, prior, ys)
+    ok = _run_filter(RiskSensitiveKF(0.5 / lam_max, throw=False, outputs="all"), model, prior, ys)
     assert ok.result == jdrkf.RESULTS.successful and np.all(ok.info["valid"])
-    bad = _run_filter(RiskSensitiveKF(1.01 / lam_max, throw=False), model, prior, ys)
+    bad = _run_filter(RiskSensitiveKF(1.01 / lam_max, throw=False, outputs="all"), model, prior, ys)
     assert bad.result == jdrkf.RESULTS.risk_sensitive_breakdown
     assert not bad.info["valid"][0]
     # No pretence of a finite answer after the breakdown.
@@ -403,7 +403,7 @@ def test_robustify_gradients_with_repeated_eigenvalues(rng, tau, spectrum):
 
 def test_float32_runs_and_matches_float64(rng):
     model, prior, ys = _kf_problem(rng)
-    ref = _run_filter(TauKF(0.5, 0.1), model, prior, ys)
+    ref = _run_filter(TauKF(0.5, 0.1, outputs="all"), model, prior, ys)
     f32 = lambda x: jnp.asarray(x, jnp.float32)
     model32 = jax.tree_util.tree_map(f32, model)
     prior32 = jdrkf.Gaussian(f32(prior.mean), f32(prior.cov))
@@ -411,7 +411,7 @@ def test_float32_runs_and_matches_float64(rng):
         res = _run_filter(filt, model32, prior32, f32(ys))
         assert res.filtered_means.dtype == jnp.float32 and res.filtered_covariances.dtype == jnp.float32
         assert res.result == jdrkf.RESULTS.successful
-    res = _run_filter(TauKF(0.5, 0.1), model32, prior32, f32(ys))
+    res = _run_filter(TauKF(0.5, 0.1, outputs="all"), model32, prior32, f32(ys))
     np.testing.assert_allclose(res.filtered_means, ref.filtered_means, rtol=1e-3, atol=1e-3)
     np.testing.assert_allclose(res.info["theta"], ref.info["theta"], rtol=1e-3)
 
@@ -420,7 +420,7 @@ def test_missing_observations(rng):
     model, prior, ys = _kf_problem(rng)
     ys[4, :] = np.nan
     ys[7, 0] = np.nan
-    res = _run_filter(TauKF(0.0, 0.1), model, prior, ys)
+    res = _run_filter(TauKF(0.0, 0.1, outputs="all"), model, prior, ys, ~np.isnan(ys))
     assert res.result == jdrkf.RESULTS.successful
     np.testing.assert_array_equal(res.filtered_means[4], res.predicted_means[4])
     np.testing.assert_allclose(res.filtered_covariances[4], res.predicted_covariances[4], atol=1e-14)
@@ -432,13 +432,24 @@ def test_missing_observations(rng):
     np.testing.assert_allclose(res.filtered_means[7], ref["filtered_means"][0], atol=1e-12)
 
 
-def test_nominal_covariance_shared_under_vmap_without_masking(rng):
+def test_nominal_covariance_shared_under_vmap_without_a_mask(rng):
     model, prior, _ = _kf_problem(rng, T=10)
     ys = rng.normal(size=(4, 10, 2))
-    jaxpr = jax.make_jaxpr(jax.vmap(TauKF(0.5, 0.1, nan_as_missing=False), in_axes=(None, None, 0)))(model, prior, ys)
-    scan = next(e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan")
-    carry_shapes = [v.aval.shape for v in scan.outvars[: scan.params["num_carry"]]]
-    assert (3, 3) in carry_shapes and (4, 3, 3) not in carry_shapes
+
+    def carry_shapes(fn, *args):
+        jaxpr = jax.make_jaxpr(fn)(*args)
+        scan = next(e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan")
+        return [v.aval.shape for v in scan.outvars[: scan.params["num_carry"]]]
+
+    shapes = carry_shapes(jax.vmap(TauKF(0.5, 0.1), in_axes=(None, None, 0)), model, prior, ys)
+    assert (3, 3) in shapes and (4, 3, 3) not in shapes
+    # a mask shared by all runs keeps the recursion shared; a per-run mask does not
+    mask = np.ones((10, 2), bool)
+    mask[3, 0] = False
+    shapes = carry_shapes(jax.vmap(lambda y: TauKF(0.5, 0.1)(model, prior, y, observed=mask)), ys)
+    assert (3, 3) in shapes and (4, 3, 3) not in shapes
+    shapes = carry_shapes(jax.vmap(lambda y, o: TauKF(0.5, 0.1)(model, prior, y, observed=o)), ys, np.stack([mask] * 4))
+    assert (4, 3, 3) in shapes
 
 
 @st.composite
@@ -463,7 +474,7 @@ def test_filtered_covariances_symmetric_psd(system):
     model = jdrkf.LinearModel(F, H, Q, R)
     prior = jdrkf.Gaussian(np.zeros(3), np.eye(3))
     ys = np.random.default_rng(seed).normal(size=(40, 2)) * 3
-    res = _run_filter(TauKF(tau, c, throw=False), model, prior, ys)
+    res = _run_filter(TauKF(tau, c, throw=False, outputs="all"), model, prior, ys)
     assert res.result == jdrkf.RESULTS.successful
     covs = np.asarray(res.filtered_covariances)
     np.testing.assert_array_equal(covs, np.swapaxes(covs, -1, -2))

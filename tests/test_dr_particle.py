@@ -61,8 +61,8 @@ def data():
 
 
 @eqx.filter_jit
-def _run(flt, model, ys, key):
-    return flt(model, PRIOR, ys, key)
+def _run(flt, model, ys, key, observed=None):
+    return flt(model, PRIOR, ys, key, observed=observed)
 
 
 # ------------------------------------------------------------------- reductions
@@ -78,8 +78,8 @@ def test_reduces_to_bootstrap(data, resampling, ess, estimate):
     ys = data[0][0]
     key = jax.random.key(3)
     opts = dict(resampling=resampling, ess_threshold=ess, estimate=estimate)
-    ref = _run(BootstrapPF(100, **opts), _growth(), ys, key)
-    out = _run(DRParticleFilter(100, theta=1.0, **opts), _growth(), ys, key)
+    ref = _run(BootstrapPF(100, **opts, outputs="all"), _growth(), ys, key)
+    out = _run(DRParticleFilter(100, theta=1.0, **opts, outputs="all"), _growth(), ys, key)
     for a, b in [
         (ref.filtered_means, out.filtered_means),
         (ref.filtered_covariances, out.filtered_covariances),
@@ -96,13 +96,13 @@ def test_inflation_equals_pf_with_inflated_noise(data):
     key); for Gaussian noise and for a Gaussian mixture law (both components scaled)."""
     ys, theta = data[0][1], 5.0
     key = jax.random.key(11)
-    out = _run(DRParticleFilter(100, theta=theta), _growth(), ys, key)
-    ref = _run(BootstrapPF(100), _growth(r=theta), ys, key)
+    out = _run(DRParticleFilter(100, theta=theta, outputs="all"), _growth(), ys, key)
+    ref = _run(BootstrapPF(100, outputs="all"), _growth(r=theta), ys, key)
     np.testing.assert_allclose(out.filtered_means, ref.filtered_means, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(out.loglik_increments, ref.loglik_increments, rtol=1e-10)
     mix = lambda s: MixtureNoise(s * jnp.eye(1), 0.1, 10.0)  # noqa: E731
-    out = _run(DRParticleFilter(100, theta=theta), _growth(measurement_noise=mix(1.0)), ys, key)
-    ref = _run(BootstrapPF(100), _growth(measurement_noise=mix(theta)), ys, key)
+    out = _run(DRParticleFilter(100, theta=theta, outputs="all"), _growth(measurement_noise=mix(1.0)), ys, key)
+    ref = _run(BootstrapPF(100, outputs="all"), _growth(measurement_noise=mix(theta)), ys, key)
     np.testing.assert_allclose(out.filtered_means, ref.filtered_means, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(out.loglik_increments, ref.loglik_increments, rtol=1e-9, atol=1e-9)
 
@@ -111,8 +111,8 @@ def test_inflation_equals_pf_with_inflated_noise(data):
 def test_prior_radius_zero_is_bootstrap(data, prior):
     ys = data[0][0]
     key = jax.random.key(5)
-    ref = _run(BootstrapPF(100), _growth(), ys, key)  # compiled already by test_reduces_to_bootstrap
-    out = _run(DRParticleFilter(100, prior=prior, prior_radius=0.0, theta=1.0), _growth(), ys, key)
+    ref = _run(BootstrapPF(100, outputs="all"), _growth(), ys, key)  # compiled already by test_reduces_to_bootstrap
+    out = _run(DRParticleFilter(100, prior=prior, prior_radius=0.0, theta=1.0, outputs="all"), _growth(), ys, key)
     np.testing.assert_allclose(out.filtered_means, ref.filtered_means, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(out.loglik_increments, ref.loglik_increments, rtol=1e-9, atol=1e-9)
 
@@ -157,7 +157,7 @@ def test_method1_prior_weights_match_oracle(data, prior):
     the previous posterior weights (no resampling, so those are not uniform)."""
     ys = data[0][0][:8]
     radius = 0.05 if prior == "kl" else 0.3
-    flt = DRParticleFilter(40, prior=prior, prior_radius=radius, theta=1.0, ess_threshold=0.0, return_particles=True)
+    flt = DRParticleFilter(40, prior=prior, prior_radius=radius, theta=1.0, ess_threshold=0.0, return_particles=True, outputs="all")
     out = _run(flt, _growth(), ys, jax.random.key(2))
     prev = np.exp(np.asarray(out.info["log_weights"]))
     got = np.exp(np.asarray(out.info["prior_log_weights"]))
@@ -197,7 +197,7 @@ def test_method2_samples(getkey):
 
 @pytest.mark.slow
 def test_method2_filter_runs(data):
-    flt = DRParticleFilter(30, prior="wasserstein_sample", prior_radius=0.5, num_integration_points=300, return_particles=True)
+    flt = DRParticleFilter(30, prior="wasserstein_sample", prior_radius=0.5, num_integration_points=300, return_particles=True, outputs="all")
     out = _run(flt, _growth(), data[0][0][:4], jax.random.key(0))
     assert np.all(np.isfinite(out.filtered_means))
     np.testing.assert_allclose(np.exp(np.asarray(out.info["prior_log_weights"])), 1 / 30, rtol=1e-12)
@@ -260,16 +260,16 @@ def test_methods45_nonadditive_run(likelihood):
     model = _nonadditive()
     tr = _simulate_nonlinear(jax.random.key(4), model, PRIOR, 5, 1)
     small = dict(num_likelihood_particles=8, num_integration_points=200)
-    flt = DRParticleFilter(20, likelihood=likelihood, likelihood_radius=0.3, **small)
-    ys = tr.observations[0].at[2].set(jnp.nan)  # a missing y: no update, loglik 0
-    out = _run(flt, model, ys, jax.random.key(1))
+    flt = DRParticleFilter(20, likelihood=likelihood, likelihood_radius=0.3, **small, outputs="all")
+    ys = tr.observations[0].at[2].set(jnp.nan)  # a missing y (masked): no update, loglik 0
+    out = _run(flt, model, ys, jax.random.key(1), ~jnp.isnan(ys))
     assert np.all(np.isfinite(out.filtered_means)) and np.all(np.isfinite(out.loglik_increments))
     np.testing.assert_allclose(out.filtered_means[2], out.predicted_means[2], rtol=1e-12)
     assert float(out.loglik_increments[2]) == 0.0
     assert not np.allclose(out.filtered_means, out.predicted_means)  # the likelihood does move the cloud
     # A radius beyond C(0) makes the Method-5 likelihood flat: posterior = prior weights.
     if likelihood == "wasserstein_augmented":
-        flat = DRParticleFilter(20, likelihood=likelihood, likelihood_radius=1e6, **small)
+        flat = DRParticleFilter(20, likelihood=likelihood, likelihood_radius=1e6, **small, outputs="all")
         out = _run(flat, model, tr.observations[0], jax.random.key(1))
         np.testing.assert_allclose(out.filtered_means, out.predicted_means, rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(out.loglik_increments, -math.log(9), rtol=1e-10)
@@ -287,13 +287,13 @@ def test_inflate_needs_additive_model():
 def test_outlier_drop(data):
     ys, theta = data[0][0], 5.0
     key = jax.random.key(9)
-    base = _run(DRParticleFilter(100, theta=theta), _growth(), ys, key)
-    gated = _run(DRParticleFilter(100, theta=theta, outlier="drop"), _growth(), ys, key)
+    base = _run(DRParticleFilter(100, theta=theta, outputs="all"), _growth(), ys, key)
+    gated = _run(DRParticleFilter(100, theta=theta, outlier="drop", outputs="all"), _growth(), ys, key)
     for a, b in [(base.filtered_means, gated.filtered_means), (base.loglik_increments, gated.loglik_increments)]:
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # no outlier: identical
     assert not np.any(np.asarray(gated.info["outlier"]))
     bad = ys.at[7, 0].set(1e3)
-    out = _run(DRParticleFilter(100, theta=theta, outlier="drop"), _growth(), bad, key)
+    out = _run(DRParticleFilter(100, theta=theta, outlier="drop", outputs="all"), _growth(), bad, key)
     flags = np.asarray(out.info["outlier"])
     assert flags[7] and flags.sum() == 1
     np.testing.assert_allclose(out.filtered_means[7], out.predicted_means[7], rtol=1e-12)
@@ -308,7 +308,7 @@ def test_outlier_nearest(data):
     h(x*) + v^r, i.e. a little above h(x*), not 1e3."""
     ys, theta = data[0][0], 5.0
     bad = ys.at[7, 0].set(1e3)
-    flt = DRParticleFilter(80, theta=theta, outlier="nearest", ess_threshold=0.0, return_particles=True)
+    flt = DRParticleFilter(80, theta=theta, outlier="nearest", ess_threshold=0.0, return_particles=True, outputs="all")
     out = _run(flt, _growth(), bad, jax.random.key(9))
     flags = np.asarray(out.info["outlier"])
     assert flags[7] and flags.sum() == 1
@@ -367,7 +367,7 @@ def test_gradient_matches_finite_differences(data, field, kwargs, value):
 def test_vmap_over_runs_and_keys(data, likelihood):
     ys = data[0]
     keys = jax.random.split(jax.random.key(8), ys.shape[0])
-    flt = DRParticleFilter(40, likelihood=likelihood, num_likelihood_particles=10, nan_as_missing=False)
+    flt = DRParticleFilter(40, likelihood=likelihood, num_likelihood_particles=10)
     batch = jax.jit(jax.vmap(flt, in_axes=(None, None, 0, 0)))(_growth(), PRIOR, ys, keys)
     for i in range(ys.shape[0]):
         one = _run(flt, _growth(), ys[i], keys[i])
@@ -375,10 +375,10 @@ def test_vmap_over_runs_and_keys(data, likelihood):
 
 
 def test_missing_observation_keeps_weights(data):
-    """An all-NaN y: no update (posterior = prior), loglik increment 0, not an outlier.
-    (Same configuration as `test_outlier_drop`, so no new compilation.)"""
+    """An all-NaN y, masked by `observed`: no update (posterior = prior), loglik increment 0, not an outlier.
+    (Same configuration as `test_outlier_drop`.)"""
     ys = data[0][0].at[3].set(jnp.nan)
-    out = _run(DRParticleFilter(100, theta=5.0, outlier="drop"), _growth(), ys, jax.random.key(1))
+    out = _run(DRParticleFilter(100, theta=5.0, outlier="drop", outputs="all"), _growth(), ys, jax.random.key(1), ~jnp.isnan(ys))
     np.testing.assert_allclose(out.filtered_means[3], out.predicted_means[3], rtol=1e-12)
     assert float(out.loglik_increments[3]) == 0.0 and not bool(out.info["outlier"][3])
 

@@ -157,7 +157,7 @@ def test_ckf_and_single_sensor_kf_match_numpy(rng):
     R = np.asarray(model.noise_cov())
     prior = jdrkf.Gaussian(jnp.asarray(rng.normal(size=3)), jnp.asarray(_spd(rng, 3)))
     ys = rng.normal(size=(15, 3))
-    res = run(CKF(), model, prior, ys)
+    res = run(CKF(outputs="all"), model, prior, ys)
     ref = numpy_kalman_filter(prior.mean, prior.cov, ys, F, H, Q, R, G=G)
     for key in ("filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances"):
         np.testing.assert_allclose(getattr(res, key), ref[key], rtol=1e-10, atol=1e-10)
@@ -235,7 +235,7 @@ def test_ci_filter_matches_numpy(rng, criterion):
     F, G, Q, H, R_bd = _np(model)
     prior = jdrkf.Gaussian(jnp.zeros(3), jnp.asarray(_spd(rng, 3)))
     ys = rng.normal(size=(8, 4))
-    res = run(CovarianceIntersection(criterion), model, prior, ys)
+    res = run(CovarianceIntersection(criterion, outputs="all"), model, prior, ys)
     Hb = [H[:1], H[1:2], H[2:]]
     Rb = [R_bd[:1, :1], R_bd[1:2, 1:2], R_bd[2:, 2:]]
     means, covs, weights = fo.ci_filter(np.zeros(3), np.asarray(prior.cov), ys, F, G, Q, Hb, Rb, criterion)

@@ -47,7 +47,8 @@ def _time_varying_problem(rng, n=3, m=2, q=2, p=1, T=40, missing=True):
 
 def test_matches_numpy_oracle_time_varying_controls_missing(rng):
     fields, u, m0, P0, ys = _time_varying_problem(rng)
-    res = jdrkf.KalmanFilter()(jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0), ys, inputs=u)
+    flt = jdrkf.KalmanFilter(outputs="all")
+    res = flt(jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0), ys, inputs=u, observed=~np.isnan(ys))
     ref = numpy_kalman_filter(m0, P0, ys, inputs=u, **fields)
     for name in ["filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances", "loglik_increments"]:
         np.testing.assert_allclose(getattr(res, name), ref[name], rtol=0, atol=1e-10, err_msg=name)
@@ -70,7 +71,7 @@ def test_matches_filterpy(rng):
         means.append(kf.x.copy())
         covs.append(kf.P.copy())
         lls.append(kf.log_likelihood)
-    res = jdrkf.KalmanFilter()(jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(m0, P0), ys)
+    res = jdrkf.KalmanFilter(outputs="all")(jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(m0, P0), ys)
     np.testing.assert_allclose(res.filtered_means, np.array(means), atol=1e-10)
     np.testing.assert_allclose(res.filtered_covariances, np.array(covs), atol=1e-10)
     np.testing.assert_allclose(res.loglik_increments, np.array(lls), atol=1e-10)
@@ -220,7 +221,7 @@ def test_steady_state_gain_is_limit_of_time_varying_gain(rng):
     np.testing.assert_allclose(ss.predicted_cov, P_ref, atol=1e-10)
     np.testing.assert_allclose(ss.gain, K_ref, atol=1e-10)
     prior = jdrkf.Gaussian(np.zeros(n), 10 * np.eye(n))
-    res = jdrkf.KalmanFilter()(model, prior, rng.normal(size=(300, m)))
+    res = jdrkf.KalmanFilter(outputs="all")(model, prior, rng.normal(size=(300, m)))
     P_last = res.predicted_covariances[-1]
     K_last = P_last @ H.T @ np.linalg.inv(H @ P_last @ H.T + R)
     np.testing.assert_allclose(K_last, ss.gain, atol=1e-10)
@@ -234,8 +235,8 @@ def test_steady_state_filter_tracks_kalman_filter_after_transient(rng):
     _, ys = numpy_simulate_lgssm(rng, np.zeros(n), np.eye(n), F, H, Q, R, 200)
     ys[50, 0] = np.nan
     prior = jdrkf.Gaussian(np.zeros(n), np.eye(n))
-    kf = jdrkf.KalmanFilter()(model, prior, ys)
-    ss = jdrkf.SteadyStateKalmanFilter()(model, prior, ys)
+    kf = jdrkf.KalmanFilter(outputs="all")(model, prior, ys, observed=~np.isnan(ys))
+    ss = jdrkf.SteadyStateKalmanFilter(outputs="all")(model, prior, ys, observed=~np.isnan(ys))
     np.testing.assert_allclose(ss.filtered_means[100:], kf.filtered_means[100:], atol=1e-8)
     np.testing.assert_allclose(ss.loglik_increments[100:], kf.loglik_increments[100:], atol=1e-8)
     assert ss.loglik_increments[50] == 0.0
@@ -278,42 +279,201 @@ def test_float32_long_run_covariances_stay_symmetric_psd(system):
     assert res.result == jdrkf.RESULTS.successful
 
 
-def test_nan_as_missing_false_equals_default_and_fails_loudly_on_nan(rng):
+def test_default_equals_all_observed_mask_and_fails_loudly_on_nan(rng):
     fields, u, m0, P0, ys = _time_varying_problem(rng, missing=False)
     model, prior = jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0)
-    a = jdrkf.KalmanFilter()(model, prior, ys, inputs=u)
-    b = jdrkf.KalmanFilter(nan_as_missing=False)(model, prior, ys, inputs=u)
+    a = jdrkf.KalmanFilter()(model, prior, ys, inputs=u, observed=np.ones(ys.shape, bool))
+    b = jdrkf.KalmanFilter()(model, prior, ys, inputs=u)
     np.testing.assert_allclose(b.filtered_means, a.filtered_means, atol=1e-12)
     np.testing.assert_allclose(b.filtered_covariances, a.filtered_covariances, atol=1e-12)
     np.testing.assert_allclose(b.marginal_loglik, a.marginal_loglik, rtol=1e-12)
     ys[4, 0] = np.nan
-    res = jdrkf.KalmanFilter(nan_as_missing=False, throw=False)(model, prior, ys, inputs=u)
-    assert res.result == jdrkf.RESULTS.nonfinite_state
+    with pytest.raises(ValueError, match=r"ys\[4, 0\] is NaN.*observed"):
+        jdrkf.KalmanFilter(throw=False)(model, prior, ys, inputs=u)
+    res = jax.jit(lambda y: jdrkf.KalmanFilter(throw=False)(model, prior, y, inputs=u))(ys)
+    assert res.result == jdrkf.RESULTS.nan_observation
 
 
-def test_nan_as_missing_false_shares_covariance_under_vmap(rng):
-    # Without masking the covariance recursion does not depend on the data, so vmap
+def test_default_shares_covariance_under_vmap(rng):
+    # Without a mask the covariance recursion does not depend on the data, so vmap
     # leaves it unbatched: the jaxpr of the batched filter has no batched Cholesky.
     model = jdrkf.LinearModel(_random_stable(rng, 2), rng.normal(size=(1, 2)), np.eye(2), np.eye(1))
     prior = jdrkf.Gaussian(np.zeros(2), np.eye(2))
     ys = rng.normal(size=(4, 10, 1))
-    shared = jax.vmap(jdrkf.KalmanFilter(nan_as_missing=False), in_axes=(None, None, 0))(model, prior, ys)
-    masked = jax.vmap(jdrkf.KalmanFilter(), in_axes=(None, None, 0))(model, prior, ys)
+    observed = np.ones(ys.shape, bool)
+    shared = jax.vmap(jdrkf.KalmanFilter(), in_axes=(None, None, 0))(model, prior, ys)
+    masked = jax.vmap(lambda y, o: jdrkf.KalmanFilter()(model, prior, y, observed=o))(ys, observed)
     np.testing.assert_allclose(shared.filtered_means, masked.filtered_means, atol=1e-12)
-    jaxpr = jax.make_jaxpr(jax.vmap(jdrkf.KalmanFilter(nan_as_missing=False), in_axes=(None, None, 0)))(model, prior, ys)
-    scan = next(e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan")
-    cov_carry = [v.aval.shape for v in scan.outvars[: scan.params["num_carry"]]]
+    np.testing.assert_allclose(shared.filtered_covariances, masked.filtered_covariances, atol=1e-12)
+
+    def cov_carry_shapes(fn, *args):
+        jaxpr = jax.make_jaxpr(fn)(*args)
+        scan = next(e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan")
+        return [v.aval.shape for v in scan.outvars[: scan.params["num_carry"]]]
+
+    cov_carry = cov_carry_shapes(jax.vmap(jdrkf.KalmanFilter(), in_axes=(None, None, 0)), model, prior, ys)
     assert (2, 2) in cov_carry and (4, 2, 2) not in cov_carry
+    # a per-run mask makes the covariance recursion per run
+    per_run = cov_carry_shapes(jax.vmap(lambda y, o: jdrkf.KalmanFilter()(model, prior, y, observed=o)), ys, observed)
+    assert (4, 2, 2) in per_run
 
 
-def test_steady_state_nan_as_missing_false_matches_default_on_complete_data(rng):
+def test_steady_state_default_matches_all_observed_mask_on_complete_data(rng):
     n, m = 3, 2
     F, H, Q, R = _random_stable(rng, n, 0.8), rng.normal(size=(m, n)), _random_spd(rng, n), _random_spd(rng, m)
     model, prior = jdrkf.LinearModel(F, H, Q, R), jdrkf.Gaussian(np.zeros(n), np.eye(n))
     _, ys = numpy_simulate_lgssm(rng, np.zeros(n), np.eye(n), F, H, Q, R, 50)
-    a = jdrkf.SteadyStateKalmanFilter()(model, prior, ys)
-    b = jdrkf.SteadyStateKalmanFilter(nan_as_missing=False)(model, prior, ys)
+    flt = jdrkf.SteadyStateKalmanFilter(outputs="all")
+    a = flt(model, prior, ys, observed=np.ones(ys.shape, bool))
+    b = flt(model, prior, ys)
     np.testing.assert_allclose(b.filtered_means, a.filtered_means, atol=1e-12)
     np.testing.assert_allclose(b.loglik_increments, a.loglik_increments, atol=1e-12)
     ys[5, 1] = np.nan
-    assert jdrkf.SteadyStateKalmanFilter(nan_as_missing=False, throw=False)(model, prior, ys).result == jdrkf.RESULTS.nonfinite_state
+    with pytest.raises(ValueError, match="observed"):
+        jdrkf.SteadyStateKalmanFilter(throw=False)(model, prior, ys)
+    res = jax.jit(lambda y: jdrkf.SteadyStateKalmanFilter(throw=False)(model, prior, y))(ys)
+    assert res.result == jdrkf.RESULTS.nan_observation
+
+
+# --- explicit missing-data mask (`observed`) and requested outputs (`outputs`) ----------------
+
+_ALL_FIELDS = (
+    "filtered_means",
+    "filtered_covariances",
+    "predicted_means",
+    "predicted_covariances",
+    "loglik_increments",
+    "marginal_loglik",
+    "info",
+)
+
+
+def test_observed_mask_ignores_masked_values_and_matches_nan_oracle(rng):
+    fields, u, m0, P0, ys = _time_varying_problem(rng)  # NaN at the missing entries
+    model, prior = jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0)
+    observed = ~np.isnan(ys)
+    flt = jdrkf.KalmanFilter(outputs="all")
+    res = flt(model, prior, ys, inputs=u, observed=observed)
+    assert res.result == jdrkf.RESULTS.successful
+    # The values at masked entries are ignored: finite garbage there gives the same run.
+    garbage = np.where(observed, ys, 1e3 * rng.normal(size=ys.shape))
+    assert np.all(np.isfinite(garbage))
+    res_g = flt(model, prior, garbage, inputs=u, observed=observed)
+    for name in ["filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances", "loglik_increments"]:
+        np.testing.assert_array_equal(getattr(res_g, name), getattr(res, name), err_msg=name)
+    np.testing.assert_array_equal(res_g.marginal_loglik, res.marginal_loglik)
+    # ... and equals the old NaN-as-missing semantics (the NumPy oracle skips NaN components).
+    ref = numpy_kalman_filter(m0, P0, ys, inputs=u, **fields)
+    for name in ["filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances", "loglik_increments"]:
+        np.testing.assert_allclose(getattr(res_g, name), ref[name], rtol=0, atol=1e-10, err_msg=name)
+    np.testing.assert_allclose(res_g.marginal_loglik, ref["marginal_loglik"], rtol=1e-12)
+    # The mask, not the data, decides: hiding finite entries equals the oracle with NaN there.
+    hidden = observed.copy()
+    hidden[0, 1] = hidden[20, 0] = False
+    res_h = jax.jit(lambda y, o: flt(model, prior, y, inputs=u, observed=o))(garbage, hidden)
+    ys_h = np.where(hidden, ys, np.nan)
+    ref_h = numpy_kalman_filter(m0, P0, ys_h, inputs=u, **fields)
+    for name in ["filtered_means", "filtered_covariances", "loglik_increments"]:
+        np.testing.assert_allclose(getattr(res_h, name), ref_h[name], rtol=0, atol=1e-10, err_msg=name)
+    assert not np.allclose(res_h.filtered_means, res.filtered_means, atol=1e-6)
+
+
+def test_nan_without_mask_raises_or_reports_nan_observation(rng):
+    fields, u, m0, P0, ys = _time_varying_problem(rng, missing=False)
+    model, prior = jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0)
+    ys[6, 1] = np.nan
+    # Concrete data: an eager error that points at `observed`.
+    with pytest.raises(ValueError, match=r"ys\[6, 1\] is NaN.*observed=~jnp\.isnan\(ys\)"):
+        jdrkf.KalmanFilter(throw=False)(model, prior, ys, inputs=u)
+    # Traced data: a result code (it takes precedence over the NaN state it causes) ...
+    res = jax.jit(lambda y: jdrkf.KalmanFilter(throw=False)(model, prior, y, inputs=u))(ys)
+    assert res.result == jdrkf.RESULTS.nan_observation
+    # ... and with throw=True a run-time error.
+    with pytest.raises(Exception, match="told to use is NaN"):
+        jax.block_until_ready(jax.jit(lambda y: jdrkf.KalmanFilter()(model, prior, y, inputs=u))(ys).filtered_means)
+    # A NaN at an entry the mask marks observed is the same error.
+    observed = np.ones(ys.shape, bool)
+    observed[2, 0] = False
+    with pytest.raises(ValueError, match=r"ys\[6, 1\] is NaN.*observed"):
+        jdrkf.KalmanFilter(throw=False)(model, prior, ys, inputs=u, observed=observed)
+    run = jax.jit(lambda y, o: jdrkf.KalmanFilter(throw=False)(model, prior, y, inputs=u, observed=o))
+    assert run(ys, observed).result == jdrkf.RESULTS.nan_observation
+    # Masking the NaN entry makes the run succeed.
+    observed[6, 1] = False
+    assert run(ys, observed).result == jdrkf.RESULTS.successful
+    # Under vmap the code is per run: only the run with the NaN reports it.
+    runs = np.stack([np.nan_to_num(ys), ys, np.nan_to_num(ys) + 1.0])
+    codes = jax.vmap(lambda y: jdrkf.KalmanFilter(throw=False)(model, prior, y, inputs=u).result)(runs)
+    np.testing.assert_array_equal(
+        np.asarray(codes == jdrkf.RESULTS.nan_observation), [False, True, False]
+    )
+    np.testing.assert_array_equal(np.asarray(codes == jdrkf.RESULTS.successful), [True, False, True])
+
+
+def test_observed_validation(rng):
+    fields, u, m0, P0, ys = _time_varying_problem(rng, missing=False)
+    model, prior = jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0)
+    T, m = ys.shape
+    bad = [
+        np.ones((T, m + 1), bool),  # wrong shape
+        np.ones((T - 1, m), bool),
+        np.ones(T * m, bool),
+        np.ones((T, m)),  # float, not bool
+        np.ones((T, m), np.int32),
+    ]
+    for observed in bad:
+        with pytest.raises(ValueError, match="observed"):
+            jdrkf.KalmanFilter()(model, prior, ys, inputs=u, observed=observed)
+    with pytest.raises(ValueError, match="observed"):
+        jdrkf.SteadyStateKalmanFilter()(
+            jdrkf.LinearModel(fields["F"][0], fields["H"], fields["Q"], fields["R"][0], G=fields["G"]),
+            prior, ys, observed=np.ones((T, m), np.float64),
+        )
+    # CovarianceIntersection does not support missing data.
+    ms = jdrkf.MultiSensorModel(np.eye(2) * 0.9, [np.ones((1, 2)), np.eye(2)], np.eye(2), [np.eye(1), np.eye(2)])
+    ys3 = rng.normal(size=(5, 3))
+    ci = jdrkf.CovarianceIntersection()
+    assert ci(ms, jdrkf.Gaussian(np.zeros(2), np.eye(2)), ys3).result == jdrkf.RESULTS.successful
+    with pytest.raises(ValueError, match="observed"):
+        ci(ms, jdrkf.Gaussian(np.zeros(2), np.eye(2)), ys3, observed=np.ones((5, 3), bool))
+
+
+def test_outputs_default_all_and_subsets(rng):
+    fields, u, m0, P0, ys = _time_varying_problem(rng)
+    model, prior = jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0)
+    observed = ~np.isnan(ys)
+    default = jdrkf.KalmanFilter()(model, prior, ys, inputs=u, observed=observed)
+    filled = {"filtered_means", "filtered_covariances", "marginal_loglik"}
+    for name in _ALL_FIELDS:
+        assert (getattr(default, name) is not None) == (name in filled), name
+    assert default.result == jdrkf.RESULTS.successful
+    full = jdrkf.KalmanFilter(outputs="all")(model, prior, ys, inputs=u, observed=observed)
+    for name in _ALL_FIELDS[:-1]:  # KalmanFilter has no diagnostics (info is None)
+        assert getattr(full, name) is not None, name
+    for name in filled:
+        np.testing.assert_array_equal(getattr(default, name), getattr(full, name), err_msg=name)
+    np.testing.assert_allclose(full.marginal_loglik, jnp.sum(full.loglik_increments), rtol=1e-12)
+    assert full.loglik_increments.shape == (ys.shape[0],) and full.predicted_covariances.shape == (ys.shape[0], 3, 3)
+    # A filter with diagnostics fills `info` with "all" and only then.
+    huber_all = jdrkf.HuberKF(0.05, 1.4, outputs="all")(model, prior, ys, inputs=u, observed=observed)
+    assert all(getattr(huber_all, name) is not None for name in _ALL_FIELDS)
+    assert jdrkf.HuberKF(0.05, 1.4)(model, prior, ys, inputs=u, observed=observed).info is None
+    np.testing.assert_allclose(huber_all.marginal_loglik, jnp.sum(huber_all.loglik_increments), rtol=1e-12)
+    # Requested fields equal those of "all"; the others are None (a name or a sequence, jit or not).
+    for outputs in ["predicted_means", ("loglik_increments",), ("marginal_loglik", "predicted_covariances"), ["info", "filtered_means"]]:
+        requested = {outputs} if isinstance(outputs, str) else set(outputs)
+        for call in (lambda f: f(model, prior, ys, inputs=u, observed=observed),
+                     jax.jit(lambda f: f(model, prior, ys, inputs=u, observed=observed))):
+            for flt, cls in ((jdrkf.KalmanFilter(outputs=outputs), jdrkf.KalmanFilter), (jdrkf.HuberKF(0.05, 1.4, outputs=outputs), functools.partial(jdrkf.HuberKF, 0.05, 1.4))):
+                res, ref = call(flt), call(cls(outputs="all"))
+                for name in _ALL_FIELDS:
+                    if name in requested:
+                        jax.tree.map(np.testing.assert_array_equal, getattr(res, name), getattr(ref, name))
+                    else:
+                        assert getattr(res, name) is None, (outputs, name)
+    # Unknown names are rejected, naming `outputs`.
+    for outputs in ["filtered_mean", ("filtered_means", "bogus"), 3]:
+        with pytest.raises(ValueError, match="outputs"):
+            jdrkf.KalmanFilter(outputs=outputs)
+        with pytest.raises(ValueError, match="outputs"):
+            jdrkf.HuberKF(0.05, 1.4, outputs=outputs)

@@ -210,7 +210,7 @@ def _simulate_linear(rng, T):
     return np.array(ys)
 
 
-_run = eqx.filter_jit(lambda pf, model, prior, ys, key: pf(model, prior, ys, key))
+_run = eqx.filter_jit(lambda pf, model, prior, ys, key, observed=None: pf(model, prior, ys, key, observed=observed))
 
 
 # --------------------------------------------------------------------------- PF vs KF
@@ -226,7 +226,7 @@ def test_pf_converges_to_kf_linear_gaussian(rng):
     n_part, runs = 20_000, 4
     means, covs, logliks, sds = [], [], [], []
     for r in range(runs):
-        res = _run(BootstrapPF(n_part), nl, prior, ys, jax.random.key(r))
+        res = _run(BootstrapPF(n_part, outputs="all"), nl, prior, ys, jax.random.key(r))
         ess = np.asarray(res.info["ess"])
         assert ess.min() > 0.02 * n_part
         # Monte Carlo sd of a self-normalized weighted mean ≈ sqrt(P_ii / ESS_t); errors
@@ -307,7 +307,7 @@ def test_growth_model_matches_numpy_pf(scheme, threshold, estimate):
     model, prior, tr = _growth_data(5, 1)
     ys = np.asarray(tr.observations[0])
     n, key = GROWTH_N, jax.random.key(11)
-    pf = BootstrapPF(n, resampling=scheme, ess_threshold=threshold, estimate=estimate)
+    pf = BootstrapPF(n, resampling=scheme, ess_threshold=threshold, estimate=estimate, outputs="all")
     res = _run(pf, model, prior, jnp.asarray(ys), key)
     x0, noise, unif = _key_schedule_draws(key, n, ys.shape[0], scheme)
     means, logliks, ess = _numpy_pf(ys[:, 0], x0, noise, unif, scheme, threshold, estimate)
@@ -326,7 +326,7 @@ def test_growth_model_matches_numpy_pf(scheme, threshold, estimate):
 def test_vmap_over_runs_and_keys_matches_loop():
     model, prior, tr = _growth_data(1, 3)
     keys = jax.random.split(jax.random.key(2), 3)
-    batched = eqx.filter_jit(jax.vmap(BootstrapPF(GROWTH_N, return_particles=True), in_axes=(None, None, 0, 0)))(
+    batched = eqx.filter_jit(jax.vmap(BootstrapPF(GROWTH_N, return_particles=True, outputs="all"), in_axes=(None, None, 0, 0)))(
         model, prior, tr.observations, keys
     )
     assert batched.filtered_means.shape == (3, GROWTH_T, 1)
@@ -348,7 +348,7 @@ def test_vmap_over_runs_and_keys_matches_loop():
 def test_missing_observation_skips_update():
     model, prior, tr = _growth_data(4, 1)
     ys = tr.observations[0].at[7].set(jnp.nan)
-    res = _run(BootstrapPF(GROWTH_N), model, prior, ys, jax.random.key(0))
+    res = _run(BootstrapPF(GROWTH_N, outputs="all"), model, prior, ys, jax.random.key(0), ~jnp.isnan(ys))
     assert float(res.loglik_increments[7]) == 0.0
     np.testing.assert_allclose(res.filtered_means[7], res.predicted_means[7], rtol=1e-12)
     np.testing.assert_allclose(res.filtered_covariances[7], res.predicted_covariances[7], rtol=1e-12)
@@ -361,7 +361,7 @@ def test_no_resampling_is_importance_sampling():
     Π_k p(y_k | x_k^i) over the particles (checked against the returned cloud)."""
     model, prior, tr = _growth_data(6, 1)
     ys = tr.observations[0][:5]
-    res = _run(BootstrapPF(GROWTH_N, ess_threshold=0.0, return_particles=True), model, prior, ys, jax.random.key(3))
+    res = _run(BootstrapPF(GROWTH_N, ess_threshold=0.0, return_particles=True, outputs="all"), model, prior, ys, jax.random.key(3))
     assert not np.any(np.asarray(res.info["resampled"]))
     x = np.asarray(res.info["particles"])[..., 0]  # (T, N): the particle paths (no resampling)
     ll = -0.5 * ((np.asarray(ys)[:, 0, None] - x**2 / 20) ** 2 + np.log(2 * np.pi))

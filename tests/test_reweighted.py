@@ -15,7 +15,7 @@ import jdrkf
 from jdrkf.filters._reweighted import RBKF, STKF, STKF_AR1, STKF_AR2, VBKF
 from jdrkf.sets._weights import Barron, GaussianKernel, Huber, PseudoHuber, StudentT
 
-run = eqx.filter_jit(lambda flt, model, prior, ys: flt(model, prior, ys))
+run = eqx.filter_jit(lambda flt, model, prior, ys, observed=None: flt(model, prior, ys, observed=observed))
 N, M = 3, 2
 
 
@@ -136,7 +136,7 @@ def test_stkf_matches_numpy_algorithm_1(covariance):
     ys = _data(model)
     nu_x, nu_y = np.array([3.0, 5.0, 2.0]), np.array([4.0, 1.5])
     t2x, t2y = 1.2, np.array([0.8, 1.1])
-    flt = STKF(nu_x, t2x, nu_y, t2y, max_iter=6, tol=1e-4, covariance=covariance)
+    flt = STKF(nu_x, t2x, nu_y, t2y, max_iter=6, tol=1e-4, covariance=covariance, outputs="all")
     res = run(flt, model, PRIOR, ys)
     means, covs, iters = numpy_irls_filter(
         ys, model, lambda e: nu_x / (nu_x * t2x + e**2), lambda e: nu_y / (nu_y * t2y + e**2), 6, 1e-4, covariance
@@ -168,14 +168,14 @@ INF = jnp.inf
 @pytest.mark.parametrize(
     "flt",
     [
-        STKF(INF, 1.0, 1e12, 1.0),
-        RBKF(GaussianKernel(INF), GaussianKernel(1e8)),
-        RBKF(Barron(2.0), Barron(2.0 - 1e-12)),
-        RBKF(PseudoHuber(INF), PseudoHuber(1e12)),
-        RBKF(Huber(INF), Huber(1e12)),
-        RBKF(None, None),
-        STKF_AR1(INF, 1.0, 1.0, INF, 1.0, 1.0),
-        VBKF(1e13, 1e13, 1.0, fixed_prior=True, shape_increment=0.0),
+        STKF(INF, 1.0, 1e12, 1.0, outputs="all"),
+        RBKF(GaussianKernel(INF), GaussianKernel(1e8), outputs="all"),
+        RBKF(Barron(2.0), Barron(2.0 - 1e-12), outputs="all"),
+        RBKF(PseudoHuber(INF), PseudoHuber(1e12), outputs="all"),
+        RBKF(Huber(INF), Huber(1e12), outputs="all"),
+        RBKF(None, None, outputs="all"),
+        STKF_AR1(INF, 1.0, 1.0, INF, 1.0, 1.0, outputs="all"),
+        VBKF(1e13, 1e13, 1.0, fixed_prior=True, shape_increment=0.0, outputs="all"),
     ],
 )
 def test_proposition_1_infinite_dof_is_kalman_filter(flt):
@@ -220,7 +220,7 @@ def test_proposition_2_rho_one_is_stkf():
     model = _model()
     ys = _data(model)
     kw = {"max_iter": 5, "tol": 1e-6}
-    ar = run(STKF_AR1(3.0, 1.2, 1.0, jnp.array([4.0, 2.0]), 0.9, 1.0, **kw), model, PRIOR, ys)
+    ar = run(STKF_AR1(3.0, 1.2, 1.0, jnp.array([4.0, 2.0]), 0.9, 1.0, **kw, outputs="all"), model, PRIOR, ys)
     st_ = run(STKF(3.0, 1.2, jnp.array([4.0, 2.0]), 0.9, **kw), model, PRIOR, ys)
     _close(ar, st_, 1e-12)
     np.testing.assert_array_equal(ar.info["tau2"][-1], [1.2] * N + [0.9] * M)
@@ -231,8 +231,8 @@ def test_proposition_2_adaptive_measurement_channels_are_vbkf(rho_c, tau2, iters
     model = _model()
     ys = _data(model)
     nu = 1.0 / (1.0 - rho_c)  # fixed point of eq. 43
-    ar = run(STKF_AR1(INF, 1.0, 1.0, nu, tau2, rho_c, max_iter=iters, tol=0.0), model, PRIOR, ys)
-    vb = VBKF(nu / 2, nu * tau2 / 2, rho_c, iters, start="predicted", covariance_in_iterations=False)
+    ar = run(STKF_AR1(INF, 1.0, 1.0, nu, tau2, rho_c, max_iter=iters, tol=0.0, outputs="all"), model, PRIOR, ys)
+    vb = VBKF(nu / 2, nu * tau2 / 2, rho_c, iters, start="predicted", covariance_in_iterations=False, outputs="all")
     vb = run(vb, model, PRIOR, ys)
     _close(ar, vb, 1e-8)
     np.testing.assert_allclose(ar.info["tau2"][:, N:], vb.info["lam"], rtol=1e-8)
@@ -251,7 +251,7 @@ def test_theorem_5_steady_state_of_lambda():
     ys = (x + rng.normal(size=steps))[:, None]
     model = jdrkf.LinearModel(F=np.eye(1), H=np.eye(1), Q=q * np.eye(1), R=np.eye(1))
     prior = jdrkf.Gaussian(jnp.zeros(1), jnp.eye(1))
-    res = run(STKF_AR1(INF, 1.0, 1.0, 1 / (1 - rho), 1.0, rho, max_iter=10, tol=1e-10), model, prior, ys)
+    res = run(STKF_AR1(INF, 1.0, 1.0, 1 / (1 - rho), 1.0, rho, max_iter=10, tol=1e-10, outputs="all"), model, prior, ys)
     lam = np.asarray(res.info["tau2"][steps // 4 :, 1])
     wpw = float(np.mean(res.filtered_covariances[steps // 4 :, 0, 0]))
     assert wpw < 2e-3
@@ -264,20 +264,20 @@ def test_stkf_ar2_switch():
     ys = _data(model, outliers=False)
     ys[10] = ys[10] + 200.0
     base = {"nu_x": INF, "nu_y": 20.0, "rho_y": 0.95}
-    ar1 = run(STKF_AR1(**base), model, PRIOR, ys)
+    ar1 = run(STKF_AR1(**base, outputs="all"), model, PRIOR, ys)
     never = run(STKF_AR2(**base, xi=INF), model, PRIOR, ys)
     _close(ar1, never, 0.0)
-    ar2 = run(STKF_AR2(**base, eta=1.0), model, PRIOR, ys)
+    ar2 = run(STKF_AR2(**base, eta=1.0, outputs="all"), model, PRIOR, ys)
     tau2 = np.asarray(ar2.info["tau2"][:, N:])
     np.testing.assert_array_equal(tau2[10], tau2[9])  # the outlier's update is reverted
     assert np.all(np.asarray(ar1.info["tau2"][10, N:]) > 3 * tau2[10])
     # The authors' gate on ‖e_y‖² (student_forward_adap_y2) also skips the outlier's update.
-    gated = run(STKF_AR1(**base, gate=40.0), model, PRIOR, ys)
+    gated = run(STKF_AR1(**base, gate=40.0, outputs="all"), model, PRIOR, ys)
     tau2 = np.asarray(gated.info["tau2"][:, N:])
     np.testing.assert_array_equal(tau2[10], tau2[9])
     np.testing.assert_array_equal(gated.info["tau2"][:10], ar1.info["tau2"][:10])
     # Default ξ = η sqrt(2ν²/(ν+1)³) τ²: η = 0 reverts every update.
-    frozen = run(STKF_AR2(**base, eta=1e-300), model, PRIOR, ys)
+    frozen = run(STKF_AR2(**base, eta=1e-300, outputs="all"), model, PRIOR, ys)
     np.testing.assert_allclose(frozen.info["tau2"][:, N:], 1.0)
 
 
@@ -315,20 +315,20 @@ def test_jit_vmap_agree_and_missing_data():
     model = _model()
     ys = np.stack([_data(model, seed=s, steps=15) for s in range(3)])
     ys[1, 4, 0] = np.nan
-    flt = STKF(3.0, 1.0, 4.0, 1.0, max_iter=5, tol=1e-8, throw=False)
-    batch = eqx.filter_jit(jax.vmap(lambda y: flt(model, PRIOR, y)))(ys)
+    flt = STKF(3.0, 1.0, 4.0, 1.0, max_iter=5, tol=1e-8, throw=False, outputs="all")
+    batch = eqx.filter_jit(jax.vmap(lambda y: flt(model, PRIOR, y, observed=~jnp.isnan(y))))(ys)
     for i in range(3):
-        one = run(flt, model, PRIOR, ys[i])
+        one = run(flt, model, PRIOR, ys[i], ~np.isnan(ys[i]))
         np.testing.assert_allclose(batch.filtered_means[i], one.filtered_means, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(batch.filtered_covariances[i], one.filtered_covariances, rtol=1e-12, atol=1e-12)
     assert bool(jnp.all(batch.result == jdrkf.RESULTS.successful))
     # All channels missing: the update is the prediction.
     ys2 = ys[0].copy()
     ys2[5] = np.nan
-    res = run(flt, model, PRIOR, ys2)
+    res = run(flt, model, PRIOR, ys2, ~np.isnan(ys2))
     np.testing.assert_allclose(res.filtered_means[5], res.predicted_means[5], rtol=1e-12)
     for f in (STKF_AR1(), VBKF()):
-        assert np.all(np.isfinite(run(f, model, PRIOR, ys2).filtered_means))
+        assert np.all(np.isfinite(run(f, model, PRIOR, ys2, ~np.isnan(ys2)).filtered_means))
 
 
 @settings(max_examples=10, deadline=None)

@@ -22,7 +22,7 @@ from jdrkf.filters._unscented import EnsembleKF, UnscentedKF, merwe_weights, sig
 from oracles import numpy_kalman_filter
 
 
-run = eqx.filter_jit(lambda flt, model, prior, ys: flt(model, prior, ys))
+run = eqx.filter_jit(lambda flt, model, prior, ys, observed=None: flt(model, prior, ys, observed=observed))
 run_key = eqx.filter_jit(lambda flt, model, prior, ys, key: flt(model, prior, ys, key))
 
 
@@ -160,7 +160,7 @@ def test_sigma_points_vs_filterpy_and_moments(rng):
 @pytest.mark.parametrize("alpha, beta, kappa", [(1.0, 2.0, 0.0), (0.5, 2.0, 1.0), (0.1, 2.0, 0.0)])
 def test_matches_filterpy_growth_model(alpha, beta, kappa):
     ys = _data(GROWTH, GROWTH_PRIOR).observations[0]
-    res = run(UnscentedKF(alpha, beta, kappa), GROWTH, GROWTH_PRIOR, ys)
+    res = run(UnscentedKF(alpha, beta, kappa, outputs="all"), GROWTH, GROWTH_PRIOR, ys)
     f = lambda x, t: np_growth_f(x, t)  # noqa: E731
     means, covs, pmeans, lls = filterpy_ukf(f, lambda x, t: x**2 / 20, 10.0 * np.eye(1), np.eye(1), [0.0], np.eye(1), np.asarray(ys), alpha, beta, kappa)
     np.testing.assert_allclose(res.filtered_means, means, rtol=1e-9, atol=1e-9)
@@ -172,7 +172,7 @@ def test_matches_filterpy_growth_model(alpha, beta, kappa):
 @pytest.mark.parametrize("alpha, beta, kappa", [(1.0, 2.0, 0.0), (1e-3, 2.0, 0.0), (0.5, 2.0, -1.0)])
 def test_matches_filterpy_range_bearing(alpha, beta, kappa):
     ys = _data(TRACK, TRACK_PRIOR).observations[0]
-    res = run(UnscentedKF(alpha, beta, kappa), TRACK, TRACK_PRIOR, ys)
+    res = run(UnscentedKF(alpha, beta, kappa, outputs="all"), TRACK, TRACK_PRIOR, ys)
     means, covs, _, lls = filterpy_ukf(
         lambda x, t: F_CV @ x, np_rb_h, Q_CV, R_RB, [5.0, 0.0, 5.0, 0.0], 0.1 * np.eye(4), np.asarray(ys), alpha, beta, kappa
     )
@@ -226,11 +226,11 @@ def _lin_data(T=30, runs=1):
 @pytest.mark.parametrize(
     "flt",
     [
-        UnscentedKF(),
-        UnscentedKF(1e-3, 2.0, 0.0),
-        UnscentedKF(0.5, 0.0, 0.0),  # λ < 0, n + λ > 0
-        UnscentedKF(1.0, 2.0, 3.0 - 2),
-        UnscentedKF(sigma_points="simon"),
+        UnscentedKF(outputs="all"),
+        UnscentedKF(1e-3, 2.0, 0.0, outputs="all"),
+        UnscentedKF(0.5, 0.0, 0.0, outputs="all"),  # λ < 0, n + λ > 0
+        UnscentedKF(1.0, 2.0, 3.0 - 2, outputs="all"),
+        UnscentedKF(sigma_points="simon", outputs="all"),
     ],
 )
 def test_linear_model_equals_kalman_filter(flt):
@@ -238,7 +238,7 @@ def test_linear_model_equals_kalman_filter(flt):
     ys[3, 1] = np.nan  # a missing component
     ys[7] = np.nan  # a missing step
     ref = numpy_kalman_filter(LIN_PRIOR.mean, LIN_PRIOR.cov, ys, F2, H2, Q2, R2)
-    res = run(flt, LIN, LIN_PRIOR, jnp.asarray(ys))
+    res = run(flt, LIN, LIN_PRIOR, jnp.asarray(ys), jnp.asarray(~np.isnan(ys)))
     for name in ("filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances", "loglik_increments"):
         np.testing.assert_allclose(getattr(res, name), ref[name], rtol=1e-7, atol=1e-8, err_msg=name)
 
@@ -248,7 +248,7 @@ def test_linear_model_equals_kalman_filter(flt):
 def test_augmented_linear_model_equals_kalman_filter(redraw, kind):
     ys = _lin_data()[0]
     ref = numpy_kalman_filter(LIN_PRIOR.mean, LIN_PRIOR.cov, np.asarray(ys), F2, H2, Q3, R2, G=G3)
-    res = run(UnscentedKF(sigma_points=kind, redraw=redraw), LIN_GEN, LIN_PRIOR, ys)
+    res = run(UnscentedKF(sigma_points=kind, redraw=redraw, outputs="all"), LIN_GEN, LIN_PRIOR, ys)
     for name in ("filtered_means", "filtered_covariances", "loglik_increments"):
         np.testing.assert_allclose(getattr(res, name), ref[name], rtol=1e-7, atol=1e-8, err_msg=name)
 

@@ -16,7 +16,7 @@ from stationary_oracle import dr_riccati, stationary_sdp, step_fw
 
 
 solve = eqx.filter_jit(lambda flt, model: flt.solve(model))
-run = eqx.filter_jit(lambda flt, model, prior, ys: flt(model, prior, ys))
+run = eqx.filter_jit(lambda flt, model, prior, ys, observed=None: flt(model, prior, ys, observed=observed))
 
 # The 3-state system of the issue: SDP (14) gives 3.4271, the recursion 3.4154.
 A3 = np.array([[0.7, 0.3, 0.0], [0.0, 0.8, 0.2], [0.1, 0.0, 0.6]])
@@ -123,7 +123,7 @@ def test_time_varying_filter_means_vs_numpy(getkey):
     model = _model(A3, C3, W3, V3, process_mean=[0.1, 0.0, -0.2], noise_mean=[0.3, -0.1])
     prior = jdrkf.Gaussian(jnp.array([1.0, -1.0, 0.5]), jnp.eye(3))
     ys = np.asarray(jdrkf.simulate(getkey(), model, prior, 15, 1).observations[0])
-    res = run(jdrkf.WassersteinDRKF(0.4, 0.2), model, prior, ys)
+    res = run(jdrkf.WassersteinDRKF(0.4, 0.2, outputs="all"), model, prior, ys)
     mean, cov = np.array([1.0, -1.0, 0.5]), np.eye(3)
     for k in range(15):
         mean = A3 @ mean + np.array([0.1, 0.0, -0.2])
@@ -141,8 +141,8 @@ def test_steady_state_filter_is_constant_gain(getkey):
     prior = jdrkf.Gaussian(jnp.array([1.0, -1.0, 0.5]), jnp.eye(3))
     ys = np.array(jdrkf.simulate(getkey(), model, prior, 20, 1).observations[0])
     ys[4, 1] = np.nan
-    flt = jdrkf.SteadyStateDRKF(0.5, 0.2)
-    res = run(flt, model, prior, ys)
+    flt = jdrkf.SteadyStateDRKF(0.5, 0.2, outputs="all")
+    res = run(flt, model, prior, ys, ~np.isnan(ys))
     sol = solve(flt, model)
     gain = np.asarray(sol.gain)
     mean = np.array([1.0, -1.0, 0.5])

@@ -30,6 +30,7 @@ y2 (Case 2): measurement std × `(2 sin(2π·0.02 t))² + 1` (the authors' code)
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -43,6 +44,7 @@ from .._montecarlo import montecarlo
 from .._noise import AbstractNoise, GaussianNoise, MixtureNoise, ScaledNoise
 from .._simulate import simulate
 from ..filters import KalmanFilter
+from ..filters._base import DEFAULT_OUTPUTS, with_outputs
 from ..filters._reweighted import RBKF, STKF, STKF_AR1, VBKF
 from ..sets._weights import Barron, GaussianKernel, PseudoHuber
 from ._registry import Experiment, Report, Row, register
@@ -223,9 +225,14 @@ def torsion_scenario(key, case: str, num_runs: int, num_steps: int | None = None
     return simulate(key, truth, x0, steps, num_runs, process_noise=proc, measurement_noise=meas)
 
 
-def torsion_filters(case: str, covariance: str = COVARIANCE) -> dict:
+def torsion_filters(case: str, covariance: str = COVARIANCE, outputs: str | Sequence[str] = DEFAULT_OUTPUTS) -> dict:
     """The filters of Table IV for a case, with the authors' hyper-parameters (their code);
-    `covariance` is the posterior covariance of the iterative filters (see `COVARIANCE`)."""
+    `covariance` is the posterior covariance of the iterative filters (see `COVARIANCE`);
+    `outputs` is given to every filter (`"all"` to read their `info`)."""
+    return {name: with_outputs(flt, outputs) for name, flt in _torsion_filters(case, covariance).items()}
+
+
+def _torsion_filters(case: str, covariance: str) -> dict:
     cov = covariance
     vbkf = VBKF(alpha0=20.0, beta0=2.03 / V_VN, rho=0.98, throw=False)  # α₀ = 20, β₀ = 2.03 (absolute variance)
     kf = KalmanFilter(throw=False)
@@ -422,8 +429,13 @@ def identity_scenario(key, case: str, num_runs: int, num_steps: int | None = Non
     return simulate(key, model, x0, steps, num_runs, measurement_noise=meas)
 
 
-def identity_filters(case: str, covariance: str = COVARIANCE) -> dict:
-    """The filters of Table III for a case, with the authors' hyper-parameters (their code)."""
+def identity_filters(case: str, covariance: str = COVARIANCE, outputs: str | Sequence[str] = DEFAULT_OUTPUTS) -> dict:
+    """The filters of Table III for a case, with the authors' hyper-parameters (their code);
+    `outputs` is given to every filter (`"all"` to read their `info`)."""
+    return {name: with_outputs(flt, outputs) for name, flt in _identity_filters(case, covariance).items()}
+
+
+def _identity_filters(case: str, covariance: str) -> dict:
     cov = covariance
     if case == "y1":
         return {

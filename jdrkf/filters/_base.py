@@ -4,24 +4,27 @@ from __future__ import annotations
 
 import abc
 import copy
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
-from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray, PyTree
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray, PyTree
 
 from .._gaussian import Gaussian
 from .._models import LinearModel
-from .._validation import as_float_array
+from .._validation import as_float_array, is_concrete
 
 
 class RESULTS(eqx.Enumeration):
     """Outcome codes of a filter run (`FilterResult.result`).
 
     Compare with `result == jdrkf.RESULTS.successful`; under `vmap` this gives one
-    boolean per run. A run reports the first failure that occurred in it.
+    boolean per run. A run reports the first failure that occurred in it, except that
+    `nan_observation` (the cause of any later failure) takes precedence.
     """
 
     successful = ""
@@ -41,9 +44,39 @@ class RESULTS(eqx.Enumeration):
         "or use TauKF, which picks θ at each step."
     )
     nonfinite_state = (
-        "The filtered mean or covariance became non-finite (inf/NaN). Common causes: NaN or inf "
-        "in the inputs, an unstable model over a long horizon in float32, or an upstream bug."
+        "The filtered mean or covariance became non-finite (inf/NaN). Common causes: inf in the "
+        "inputs, an unstable model over a long horizon in float32, or an upstream bug."
     )
+    nan_observation = (
+        "An observation that the filter was told to use is NaN. To treat NaN entries as missing, "
+        "pass observed=~jnp.isnan(ys) (a boolean mask of the entries to use) to the filter call."
+    )
+
+
+OUTPUTS = (
+    "filtered_means",
+    "filtered_covariances",
+    "predicted_means",
+    "predicted_covariances",
+    "loglik_increments",
+    "marginal_loglik",
+    "info",
+)
+DEFAULT_OUTPUTS = ("filtered_means", "filtered_covariances", "marginal_loglik")
+
+
+def _as_outputs(value: str | Sequence[str]) -> tuple[str, ...]:
+    """Validate a filter's `outputs`: `"all"`, one name or a sequence of names of `OUTPUTS`."""
+    if isinstance(value, str):
+        value = OUTPUTS if value == "all" else (value,)
+    try:
+        names = tuple(value)
+    except TypeError:
+        raise ValueError(f"outputs must be 'all', a name or a sequence of names from {OUTPUTS}, got {value!r}") from None
+    unknown = [v for v in names if v not in OUTPUTS]
+    if unknown:
+        raise ValueError(f"outputs: unknown name(s) {unknown}; choose from {OUTPUTS} or 'all'")
+    return tuple(v for v in OUTPUTS if v in names)
 
 
 class StepOutput(eqx.Module):
@@ -60,6 +93,9 @@ class StepOutput(eqx.Module):
 class FilterResult(eqx.Module):
     """Output of a filter run over `T` steps (index `t` holds step `k = t + 1`).
 
+    A field is `None` unless its name is in the filter's `outputs` (default
+    `filtered_means`, `filtered_covariances`, `marginal_loglik`; `outputs="all"` for all).
+
     **Fields:**
 
     - `filtered_means`, `filtered_covariances`: `(T, n)`, `(T, n, n)`, the law of `x_k | y_{1:k}`.
@@ -67,26 +103,32 @@ class FilterResult(eqx.Module):
     - `marginal_loglik`: `log p(y_{1:T})` where the filter defines it (NaN otherwise).
     - `loglik_increments`: `(T,)`, its per-step terms.
     - `info`: filter-specific diagnostics, stacked over time.
-    - `result`: a `RESULTS` code, the first failure of the run.
+    - `result`: a `RESULTS` code, the first failure of the run (always present).
     """
 
-    filtered_means: Float[Array, "T n"]
-    filtered_covariances: Float[Array, "T n n"]
-    predicted_means: Float[Array, "T n"]
-    predicted_covariances: Float[Array, "T n n"]
-    marginal_loglik: Float[Array, ""]
-    loglik_increments: Float[Array, " T"]
+    filtered_means: Float[Array, "T n"] | None
+    filtered_covariances: Float[Array, "T n n"] | None
+    predicted_means: Float[Array, "T n"] | None
+    predicted_covariances: Float[Array, "T n n"] | None
+    marginal_loglik: Float[Array, ""] | None
+    loglik_increments: Float[Array, " T"] | None
     info: PyTree
     result: RESULTS
 
 
 def check_observations(
-    model: Any, prior: Gaussian, ys: Any, inputs: Any, model_types: tuple[type, ...] = (LinearModel,)
-) -> tuple[Array, Array | None]:
-    """Eager checks of a filter call; returns `ys` and `inputs` as arrays.
+    model: Any,
+    prior: Gaussian,
+    ys: Any,
+    inputs: Any,
+    observed: Any = None,
+    model_types: tuple[type, ...] = (LinearModel,),
+) -> tuple[Array, Array | None, Array | None]:
+    """Eager checks of a filter call; returns `ys`, `inputs` and `observed` as arrays.
 
     `model` must be an instance of one of `model_types`; each must provide `state_dim`,
-    `obs_dim`, `check_horizon(T)` and `check_inputs(inputs, T)`.
+    `obs_dim`, `check_horizon(T)` and `check_inputs(inputs, T)`. Concrete `ys` with a NaN
+    in an entry to be used raise here; traced ones get `RESULTS.nan_observation`.
     """
     if not isinstance(model, model_types):
         names = " or ".join(f"jdrkf.{t.__name__}" for t in model_types)
@@ -103,7 +145,22 @@ def check_observations(
     if inputs is not None:
         inputs = as_float_array("inputs", inputs, (2,))
     model.check_inputs(inputs, ys.shape[0])
-    return ys, inputs
+    if observed is not None:
+        observed = jnp.asarray(observed)
+        if observed.dtype != bool or observed.shape != ys.shape:
+            raise ValueError(
+                f"observed must be a boolean mask of the shape of ys, {tuple(ys.shape)} (True = use the entry), "
+                f"got {observed.dtype} of shape {tuple(observed.shape)}"
+            )
+    if is_concrete(ys) and (observed is None or is_concrete(observed)):
+        nan = np.isnan(np.asarray(ys))
+        if observed is not None:
+            nan &= np.asarray(observed)
+        if nan.any():
+            t, i = np.argwhere(nan)[0]
+            hint = "" if observed is not None else "; to treat NaN entries as missing, pass observed=~jnp.isnan(ys)"
+            raise ValueError(f"ys[{t}, {i}] is NaN{' but observed says to use it' if observed is not None else ''}{hint}")
+    return ys, inputs, observed
 
 
 class AbstractFilter(eqx.Module):
@@ -117,18 +174,31 @@ class AbstractFilter(eqx.Module):
     `vmap`: if any run fails). Set `throw=False` for Monte Carlo sweeps and inspect
     `FilterResult.result` instead.
 
+    `outputs` (static, keyword): the `FilterResult` fields a call fills, `"all"` or a
+    sequence of names (default `("filtered_means", "filtered_covariances",
+    "marginal_loglik")`); the others are `None` and cost nothing. Writing outputs is
+    a large part of a cheap step: ask only for what you use.
+
+    Under `jax.vmap` over observations with no missing data, everything in a filter
+    that does not depend on the data (the covariance recursion and, in the robust
+    filters, every worst-case solve) is traced unbatched, so it runs once for all
+    runs (`shared_covariance` class variable: the filter is written so). Missing
+    data enter through the `observed` mask; a mask shared by all runs keeps that
+    property, a per-run mask makes the covariance recursion per run.
+
     `model_types` (class variable): the model classes `__call__` accepts (default
     `LinearModel`; multi-sensor and nonlinear filters override it). `stochastic_init`
     (class variable): `init(model, prior, key)` draws (particle filters); `__call__` then
-    requires a key and uses `k_init, k_steps = split(key)`. `shared_covariance` (class
-    variable): the covariance recursion depends on which observations are missing but
-    not on their values, so `batch` computes it once for all runs when none is missing.
+    requires a key and uses `k_init, k_steps = split(key)`. `supports_missing` (class
+    variable): `step` honours `observed`.
     """
 
     throw: eqx.AbstractVar[bool]
+    outputs: tuple[str, ...] = eqx.field(default=DEFAULT_OUTPUTS, static=True, kw_only=True, converter=_as_outputs)
     model_types: ClassVar[tuple[type, ...]] = (LinearModel,)
     stochastic_init: ClassVar[bool] = False
     shared_covariance: ClassVar[bool] = False
+    supports_missing: ClassVar[bool] = True
 
     @abc.abstractmethod
     def init(self, model: LinearModel, prior: Gaussian) -> PyTree:
@@ -146,8 +216,10 @@ class AbstractFilter(eqx.Module):
         t: Int[ArrayLike, ""],
         u: Float[Array, " p"] | None = None,
         key: PRNGKeyArray | None = None,
+        observed: Bool[Array, " m"] | None = None,
     ) -> tuple[PyTree, StepOutput]:
-        """Advance from `x_{k-1}` to `x_k` with `y = y_k` (array index `t = k − 1`)."""
+        """Advance from `x_{k-1}` to `x_k` with `y = y_k` (array index `t = k − 1`);
+        `observed`: which components of `y` to use (`None`: all)."""
 
     def __call__(
         self,
@@ -157,14 +229,27 @@ class AbstractFilter(eqx.Module):
         key: PRNGKeyArray | None = None,
         *,
         inputs: Float[ArrayLike, "T p"] | None = None,
+        observed: Bool[ArrayLike, "T m"] | None = None,
     ) -> FilterResult:
-        """Filter `ys` (`ys[t] = y_{t+1}`; NaN entries are missing) from the prior of `x_0`.
+        """Filter `ys` (`ys[t] = y_{t+1}`) from the prior of `x_0`.
 
+        `observed` (boolean, the shape of `ys`) marks the entries to use; the others are
+        missing and their values ignored (e.g. `observed=~jnp.isnan(ys)`). Without it every
+        entry is used, and a NaN raises (concrete `ys`) or gives `RESULTS.nan_observation`.
         `key` is positional so that `jax.vmap(filter, in_axes=(None, None, 0, 0))`
         maps over runs and keys; deterministic filters ignore it.
         """
-        ys, inputs = check_observations(model, prior, ys, inputs, self.model_types)
+        ys, inputs, observed = check_observations(model, prior, ys, inputs, observed, self.model_types)
+        if observed is not None and not self.supports_missing:
+            raise ValueError(f"{type(self).__name__} does not support missing observations (observed must be None)")
         self.check_model(model)
+        # Full-precision products everywhere in the filter: GPUs may otherwise run float32
+        # matmuls in TF32 (10-bit mantissa), which breaks covariance recursions. Trace-time
+        # and local to this call: JAX's global configuration is untouched.
+        with jax.default_matmul_precision("highest"):
+            return self._run(model, prior, ys, key, inputs, observed)
+
+    def _run(self, model, prior, ys, key, inputs, observed) -> FilterResult:
         num_steps = ys.shape[0]
         if self.stochastic_init:
             if key is None:
@@ -174,71 +259,44 @@ class AbstractFilter(eqx.Module):
         else:
             state0 = self.init(model, prior)
         keys = None if key is None else jax.random.split(key, num_steps)
+        stacked = set(self.outputs) - {"marginal_loglik"}
+        loglik0 = jnp.zeros((), prior.mean.dtype) if "marginal_loglik" in self.outputs else None
 
         def body(carry, xs):
-            state, result = carry
-            t, y, u, k = xs
-            state, out = self.step(model, state, y, t, u, k)
+            state, result, _, loglik = carry
+            t, y, u, k, o = xs
+            state, out = self.step(model, state, y, t, u, k, observed=o)
             result = RESULTS.where(result == RESULTS.successful, out.result, result)
-            return (state, result), out
+            fields = {
+                "filtered_means": out.filtered.mean,
+                "filtered_covariances": out.filtered.cov,
+                "predicted_means": out.predicted.mean,
+                "predicted_covariances": out.predicted.cov,
+                "loglik_increments": out.loglik,
+                "info": out.info,
+            }
+            loglik = None if loglik is None else loglik + out.loglik
+            return (state, result, out.filtered.mean, loglik), {name: fields[name] for name in stacked}
 
-        xs = (jnp.arange(num_steps), ys, inputs, keys)
-        (_, result), outs = lax.scan(body, (state0, RESULTS.successful), xs)
-        res = FilterResult(
-            filtered_means=outs.filtered.mean,
-            filtered_covariances=outs.filtered.cov,
-            predicted_means=outs.predicted.mean,
-            predicted_covariances=outs.predicted.cov,
-            marginal_loglik=jnp.sum(outs.loglik),
-            loglik_increments=outs.loglik,
-            info=outs.info,
-            result=result,
-        )
+        xs = (jnp.arange(num_steps), ys, inputs, keys, observed)
+        carry0 = (state0, RESULTS.successful, prior.mean, loglik0)
+        (_, result, last_mean, loglik), outs = lax.scan(body, carry0, xs)
+        # A non-finite mean persists through the (linear in the mean) recursions, so checking
+        # the last one once replaces a per-step, per-run check.
+        finite = jnp.all(jnp.isfinite(last_mean))
+        result = RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite_state, result)
+        nan = jnp.isnan(ys) if observed is None else jnp.isnan(ys) & observed
+        result = RESULTS.where(jnp.any(nan), RESULTS.nan_observation, result)
+        outs["marginal_loglik"] = loglik
+        res = FilterResult(**{name: outs.get(name) for name in OUTPUTS}, result=result)
         if self.throw:
             res = result.error_if(res, result != RESULTS.successful)
         return res
 
-    def batch(
-        self,
-        model: LinearModel,
-        prior: Gaussian,
-        ys: Float[ArrayLike, "B T m"],
-        keys: PRNGKeyArray | None = None,
-        *,
-        inputs: Float[ArrayLike, "B T p"] | None = None,
-    ) -> FilterResult:
-        """Filter `B` Monte Carlo runs `ys[b]` that share `model` and `prior`; the result
-        has a leading run axis and equals `jax.vmap(self)` run by run.
 
-        For filters with `shared_covariance` (the Kalman filter and the linear robust
-        filters) the covariance recursion, including every worst-case solve, is computed
-        once for the batch instead of once per run whenever no entry of `ys` is NaN. On
-        concrete `ys` this is decided in Python; under `jit` by a `lax.cond` on the whole
-        batch (both branches are compiled; under `vmap` the cond runs both).
-        `keys`: `(B,)` keys for stochastic filters; `inputs`: `(B, T, p)`.
-        """
-        ys = as_float_array("ys", ys, (3,))
-        num_runs = ys.shape[0]
-        if keys is not None and jnp.shape(keys)[:1] != (num_runs,):
-            raise ValueError(f"keys must hold one key per run, shape ({num_runs},), got {jnp.shape(keys)}")
-        if inputs is not None:
-            inputs = as_float_array("inputs", inputs, (3,))
-            if inputs.shape[0] != num_runs:
-                raise ValueError(f"inputs must have shape ({num_runs}, T, p) like ys, got {inputs.shape}")
-        missing = jnp.any(jnp.isnan(ys))
-        return self._batch(model, prior, ys, keys, inputs, missing if isinstance(missing, jax.core.Tracer) else bool(missing))
-
-    def _batch(self, model, prior, ys, keys, inputs, missing: bool | Array) -> FilterResult:
-        """`batch` with `missing` (any NaN in `ys`) given: a Python bool picks the branch
-        when tracing (as `montecarlo` does), a traced one becomes a `lax.cond`."""
-
-        def run(flt):
-            return jax.vmap(lambda y, k, u: flt(model, prior, y, k, inputs=u))(ys, keys, inputs)
-
-        if not (self.shared_covariance and self.nan_as_missing):
-            return run(self)
-        dense = copy.copy(self)  # the same filter, with the masking of missing rows compiled out
-        object.__setattr__(dense, "nan_as_missing", False)
-        if isinstance(missing, bool):
-            return run(self if missing else dense)
-        return lax.cond(missing, lambda: run(self), lambda: run(dense))
+def with_outputs(flt: AbstractFilter, outputs: str | Sequence[str]) -> AbstractFilter:
+    """A copy of `flt` with other `outputs` (for internal callers such as `montecarlo`,
+    whose jitted metrics read what they need and let XLA drop the rest)."""
+    new = copy.copy(flt)
+    object.__setattr__(new, "outputs", _as_outputs(outputs))
+    return new

@@ -53,6 +53,7 @@ implicit function theorem on the same system (`lax.custom_root`), never from the
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import ClassVar
 
 import equinox as eqx
@@ -67,7 +68,7 @@ from .._gaussian import Gaussian
 from .._validation import as_float_array, check_covariance
 from ..sets._base import radius as _radius
 from ..sets._solve import _dense_solve
-from ._base import RESULTS, AbstractFilter, StepOutput
+from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
 _LINE_SEARCH_MAX = 60
@@ -403,8 +404,8 @@ class BCOTKF(AbstractFilter):
       `θ²`). `radius = 0` is exactly the Kalman filter. Differentiable for `radius > 0`.
     - `max_iter`: Newton iterations per step; a step that does not converge reports
       `RESULTS.solver_not_converged`.
-    - `throw`, `nan_as_missing`: as in `jdrkf.KalmanFilter`. Missing components (NaN)
-      are dropped from `H` (also in the weight `H = I + FᵀF + FᵀHᵀHF` of the cost); their
+    - `throw`, `outputs`: as in `jdrkf.KalmanFilter`. Missing components (the
+      call's `observed` mask) are dropped from `H` (also in the weight `H = I + FᵀF + FᵀHᵀHF` of the cost); their
       decoupled unit-variance noise takes no part of the budget.
 
     The nominal covariances (`G Q Gᵀ`, `R`, the prior's covariance) must be positive
@@ -425,22 +426,21 @@ class BCOTKF(AbstractFilter):
     radius: Float[Array, ""]
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, radius: Float[ArrayLike, ""], *, max_iter: int = 100, throw: bool = True, nan_as_missing: bool = True):
+    def __init__(self, radius: Float[ArrayLike, ""], *, max_iter: int = 100, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.radius = _radius("radius", radius)
         if not isinstance(max_iter, int) or max_iter < 1:
             raise ValueError(f"max_iter must be a positive int, got {max_iter!r}")
-        self.max_iter, self.throw, self.nan_as_missing = max_iter, throw, nan_as_missing
+        self.max_iter, self.throw, self.outputs = max_iter, throw, outputs
 
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         mdl = model.at(t)
         pred = predict(model, state, t, u)
-        observed, h, r, resid = _measurement(model, y, t, self.nan_as_missing)
+        observed, h, r, resid = _measurement(model, y, t, observed)
         num_obs = jnp.sum(observed.astype(resid.dtype))
         dtype = pred.cov.dtype
         qp = linalg.symmetrize(mdl.G @ mdl.Q @ mdl.G.T)

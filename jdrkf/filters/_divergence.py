@@ -10,6 +10,7 @@ the risk-sensitive filter uses a fixed θ.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import ClassVar
 
 import equinox as eqx
@@ -21,7 +22,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._validation import as_float_array, is_concrete
-from ._base import RESULTS, AbstractFilter, StepOutput
+from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _step_result, predict, update
 
 
@@ -277,7 +278,7 @@ class TauKF(AbstractFilter):
 
     - `tau`: divergence index in `[0, 1]` (0: KL; 1: the exponential form).
     - `c`: tolerance `≥ 0`; `c = 0` is exactly the Kalman filter.
-    - `throw`, `nan_as_missing`: as in `jdrkf.KalmanFilter`.
+    - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
     `tau` and `c` are differentiable hyper-parameters: θ_k comes from a safeguarded
     Newton/bisection root solve and gets its derivative from the implicit function
@@ -300,23 +301,22 @@ class TauKF(AbstractFilter):
     tau: Float[Array, ""]
     c: Float[Array, ""]
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, tau: Float[ArrayLike, ""], c: Float[ArrayLike, ""], throw: bool = True, nan_as_missing: bool = True):
+    def __init__(self, tau: Float[ArrayLike, ""], c: Float[ArrayLike, ""], throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.tau = _scalar_param("tau", tau, 0.0, 1.0)
         self.c = _scalar_param("c", c, 0.0)
         self.throw = throw
-        self.nan_as_missing = nan_as_missing
+        self.outputs = outputs
 
     def init(self, model, prior):
         return prior
 
-    def step(self, model, state, y, t, u=None, key=None):
+    def step(self, model, state, y, t, u=None, key=None, observed=None):
         nominal = predict(model, state, t, u)
         theta, v = robustify_covariance(nominal.cov, self.tau, self.c)
         pred = _with_cov(nominal, v)
-        filt, loglik, failed = update(model, pred, y, t, nan_as_missing=self.nan_as_missing)
+        filt, loglik, failed = update(model, pred, y, t, observed=observed)
         info = {"theta": theta, "nominal_predicted_cov": nominal.cov}
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=_step_result(failed, filt))
         return filt, out
@@ -340,7 +340,7 @@ class RiskSensitiveKF(AbstractFilter):
     **Arguments:**
 
     - `theta`: risk-sensitivity parameter `≥ 0` (differentiable); `0` is the Kalman filter.
-    - `throw`, `nan_as_missing`: as in `jdrkf.KalmanFilter`.
+    - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
     Reported: `predicted = N(x̂_{k|k-1}, P̃_k)`, `loglik` under that prediction,
     `info = {"valid": ..., "nominal_predicted_cov": P_k}`.
@@ -356,18 +356,17 @@ class RiskSensitiveKF(AbstractFilter):
 
     theta: Float[Array, ""]
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, theta: Float[ArrayLike, ""], throw: bool = True, nan_as_missing: bool = True):
+    def __init__(self, theta: Float[ArrayLike, ""], throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.theta = _scalar_param("theta", theta, 0.0)
         self.throw = throw
-        self.nan_as_missing = nan_as_missing
+        self.outputs = outputs
 
     def init(self, model, prior):
         return prior
 
-    def step(self, model, state, y, t, u=None, key=None):
+    def step(self, model, state, y, t, u=None, key=None, observed=None):
         nominal = predict(model, state, t, u)
         p = nominal.cov
         theta = self.theta.astype(p.dtype)
@@ -376,7 +375,7 @@ class RiskSensitiveKF(AbstractFilter):
         p_tilde = linalg.symmetrize(linalg.cho_solve(chol, p))
         p_tilde = jnp.where(valid, p_tilde, jnp.nan)
         pred = _with_cov(nominal, p_tilde)
-        filt, loglik, failed = update(model, pred, y, t, nan_as_missing=self.nan_as_missing)
+        filt, loglik, failed = update(model, pred, y, t, observed=observed)
         result = RESULTS.where(valid, _step_result(failed, filt), RESULTS.risk_sensitive_breakdown)
         info = {"valid": valid, "nominal_predicted_cov": p}
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)

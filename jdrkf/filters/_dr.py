@@ -3,6 +3,7 @@ cases used as baselines: the Huber KF and the Wasserstein KF."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import ClassVar
 
 import equinox as eqx
@@ -16,7 +17,7 @@ from ..sets._base import AbstractAmbiguitySet, radius
 from ..sets._outliers import AbstractOutlierModel, EpsContamination
 from ..sets._solve import worst_case, worst_case_joint
 from ..sets._wasserstein import Wasserstein
-from ._base import RESULTS, AbstractFilter, StepOutput
+from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
 
@@ -25,11 +26,11 @@ def _result(failed, sol, filt):
     return RESULTS.where((res == RESULTS.successful) & ~sol.converged, RESULTS.solver_not_converged, res)
 
 
-def _decoupled_step(flt, model, state, y, t, u, state_set, noise_set, outliers):
+def _decoupled_step(flt, model, state, y, t, u, observed, state_set, noise_set, outliers):
     """Algorithm 1 / Theorem 9: nominal prediction (eqs. 46–47), worst-case covariances
     (eq. 34 or 36), robust update (eqs. 48–49)."""
     pred = predict(model, state, t, u)
-    observed, h, r, resid = _measurement(model, y, t, flt.nan_as_missing)
+    observed, h, r, resid = _measurement(model, y, t, observed)
     num_obs = jnp.sum(observed.astype(resid.dtype))
     dtype = pred.cov.dtype
     i_min = jnp.ones((), dtype) if outliers is None else outliers.i_min().astype(dtype)
@@ -60,11 +61,11 @@ def _decoupled_step(flt, model, state, y, t, u, state_set, noise_set, outliers):
     return filt, out
 
 
-def _joint_step(flt, model, state, y, t, u, joint_set):
+def _joint_step(flt, model, state, y, t, u, observed, joint_set):
     """Theorem 8: one ambiguity set on the covariance of `(x_k, y_k)`; the estimate is
     the conditional mean under the worst-case joint Gaussian."""
     pred = predict(model, state, t, u)
-    observed, h, r, resid = _measurement(model, y, t, flt.nan_as_missing)
+    observed, h, r, resid = _measurement(model, y, t, observed)
     num_obs = jnp.sum(observed.astype(resid.dtype))
     n = pred.cov.shape[0]
     cross = pred.cov @ h.T
@@ -119,7 +120,7 @@ class DRKF(AbstractFilter):
     - `joint_set`: alternative to the two sets above (no outliers allowed).
     - `rtol`, `max_iter`: Frank–Wolfe tolerance (relative duality gap) and cap; a
       step that does not converge reports `RESULTS.solver_not_converged`.
-    - `throw`, `nan_as_missing`: as in `jdrkf.KalmanFilter`.
+    - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
     The whitening `S*^{-1/2}` of eq. 48 is the Cholesky factor `L⁻¹` of `S* = L Lᵀ`
     (any square root is valid; for one output all coincide). `predicted` holds the
@@ -143,7 +144,6 @@ class DRKF(AbstractFilter):
     rtol: float | None = eqx.field(default=None, static=True)
     max_iter: int = eqx.field(default=500, static=True)
     throw: bool = eqx.field(default=True, static=True, kw_only=True)  # declared first by AbstractFilter
-    nan_as_missing: bool = eqx.field(default=True, static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __check_init__(self):
@@ -158,10 +158,10 @@ class DRKF(AbstractFilter):
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         if self.joint_set is not None:
-            return _joint_step(self, model, state, y, t, u, self.joint_set)
-        return _decoupled_step(self, model, state, y, t, u, self.state_set, self.noise_set, self.outliers)
+            return _joint_step(self, model, state, y, t, u, observed, self.joint_set)
+        return _decoupled_step(self, model, state, y, t, u, observed, self.state_set, self.noise_set, self.outliers)
 
 
 class HuberKF(AbstractFilter):
@@ -179,19 +179,19 @@ class HuberKF(AbstractFilter):
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, eps: Float[ArrayLike, ""] = 0.05, k: Float[ArrayLike, ""] | None = None, *, throw: bool = True, nan_as_missing: bool = True):
+    def __init__(self, eps: Float[ArrayLike, ""] = 0.05, k: Float[ArrayLike, ""] | None = None, *, throw: bool = True,
+                 outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.outliers = EpsContamination(eps, k)
         self.rtol, self.max_iter = None, 500
-        self.throw, self.nan_as_missing = throw, nan_as_missing
+        self.throw, self.outputs = throw, outputs
 
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
-        return _decoupled_step(self, model, state, y, t, u, None, None, self.outliers)
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
+        return _decoupled_step(self, model, state, y, t, u, observed, None, None, self.outliers)
 
 
 class WassersteinKF(AbstractFilter):
@@ -211,15 +211,15 @@ class WassersteinKF(AbstractFilter):
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, rho: Float[ArrayLike, ""], *, rtol: float | None = None, max_iter: int = 500, throw: bool = True, nan_as_missing: bool = True):
+    def __init__(self, rho: Float[ArrayLike, ""], *, rtol: float | None = None, max_iter: int = 500, throw: bool = True,
+                 outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.rho = radius("rho", rho)
-        self.rtol, self.max_iter, self.throw, self.nan_as_missing = rtol, max_iter, throw, nan_as_missing
+        self.rtol, self.max_iter, self.throw, self.outputs = rtol, max_iter, throw, outputs
 
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
-        return _joint_step(self, model, state, y, t, u, Wasserstein(self.rho))
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
+        return _joint_step(self, model, state, y, t, u, observed, Wasserstein(self.rho))

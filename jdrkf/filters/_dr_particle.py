@@ -29,6 +29,7 @@ The estimate is the weighted mean before resampling.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import ClassVar
 
 import equinox as eqx
@@ -43,8 +44,8 @@ from .._nonlinear import NonlinearModel
 from .._validation import as_float_array, is_concrete
 from ..sets._maxent import maxent_kl_solve, maxent_transport_solve, maxent_wasserstein_continuous
 from . import _resampling
-from ._base import AbstractFilter, StepOutput
-from ._particle import ParticleState, _gaussian_loglik_particles, _weigh_and_resample, particle_moments
+from ._base import DEFAULT_OUTPUTS, AbstractFilter, StepOutput
+from ._particle import ParticleState, _gaussian_loglik_particles, _skip_incomplete, _weigh_and_resample, particle_moments
 
 __all__ = ["DRParticleFilter"]
 
@@ -76,11 +77,11 @@ def _scalar(name, value, *, lower=None, strict=True):
 def _inflated_loglik(model: NonlinearModel, particles, y, t, theta):
     """Method 3: `log p_v(y − h(x^j))` for the additive noise law rescaled about its mean,
     `v → μ + √θ (v − μ)` (covariance `θR`): `log p_v(μ + (y − h − μ)/√θ) − (m/2) log θ`,
-    `m` the number of observed components. At `θ = 1` the factor `1/√θ − 1` is exactly
+    `m` the number of components. At `θ = 1` the factor `1/√θ − 1` is exactly
     zero, so the values are bitwise those of `BootstrapPF`."""
     mu = model.measurement_mean
     shrink = 1.0 / jnp.sqrt(theta) - 1.0
-    num_obs = jnp.sum((~jnp.isnan(y)).astype(theta.dtype))
+    num_obs = jnp.asarray(y.shape[0], theta.dtype)
 
     def one(x):
         y_eff = y + shrink * (y - model.h(x, t) - mu)
@@ -97,10 +98,9 @@ def _likelihood_particles(model: NonlinearModel, particles, key, t, num):
     return jax.vmap(jax.vmap(lambda x, v: model.observe(x, v, t), (None, 0)))(particles, v)
 
 
-def _observed_only(y, ys):
-    """Zero the missing (NaN) components of `y` and of the likelihood particles `ys`, so
+def _observed_only(y, ys, observed):
+    """Zero the missing components of `y` and of the likelihood particles `ys`, so
     that Euclidean distances use the observed components only."""
-    observed = ~jnp.isnan(y)
     return jnp.where(observed, y, 0.0), jnp.where(observed, ys, 0.0)
 
 
@@ -217,7 +217,7 @@ class DRParticleFilter(AbstractFilter):
     - `return_particles`: add to `info` the worst-case prior cloud of every step
       (`particles`, `prior_log_weights`) and the updated `log_weights` (before
       resampling); memory `T·N·(n + 2)` per run.
-    - `throw`, `nan_as_missing`: as in `KalmanFilter`. Missing components are dropped
+    - `throw`, `outputs`: as in `KalmanFilter`. Missing components are dropped
       from the likelihood (Method 3: the Gaussian marginal; Methods 4–5: the distances);
       an all-missing `y` leaves the weights unchanged.
 
@@ -256,7 +256,6 @@ class DRParticleFilter(AbstractFilter):
     estimate: str = eqx.field(static=True)
     return_particles: bool = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -277,7 +276,7 @@ class DRParticleFilter(AbstractFilter):
         estimate: str = "weighted_mean",
         return_particles: bool = False,
         throw: bool = True,
-        nan_as_missing: bool = True,
+        outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
         def positive_int(name, v, allow_none=False):
             if allow_none and v is None:
@@ -314,7 +313,7 @@ class DRParticleFilter(AbstractFilter):
             raise ValueError(f"estimate must be 'weighted_mean' or 'resampled_mean', got {estimate!r}")
         self.resampling, self.ess_threshold, self.estimate = resampling, ess_threshold, estimate
         self.return_particles = bool(return_particles)
-        self.throw, self.nan_as_missing = bool(throw), bool(nan_as_missing)
+        self.throw, self.outputs = bool(throw), outputs
 
     # ----------------------------------------------------------------- pieces of a step
 
@@ -344,24 +343,21 @@ class DRParticleFilter(AbstractFilter):
             return jax.vmap(fn)(*args)
         return lax.map(lambda a: fn(*a), args, batch_size=None if batch == 1 else batch)
 
-    def _loglik_inflate(self, model, x, y, t):
+    def _loglik_inflate(self, model, x, y, t, observed):
         """Method 3 (additive noise): `log p_v(y − h(x^j))` with the law's covariance `θR`."""
         theta = self.theta.astype(x.dtype)
         if model.measurement_noise is None:  # N(y; h(x), θR); θ = 1 is bitwise BootstrapPF
             hx = jax.vmap(lambda xi: model.h(xi, t))(x)
             scaled = eqx.tree_at(lambda m: m.R, model, theta * model.R)
-            return _gaussian_loglik_particles(scaled, y, hx, self.nan_as_missing)
-        ll = _inflated_loglik(model, x, y, t, theta)
-        if self.nan_as_missing:
-            ll = jnp.where(jnp.any(jnp.isnan(y)), jnp.zeros_like(ll), ll)
-        return ll
+            return _gaussian_loglik_particles(scaled, y, hx, observed)
+        return _skip_incomplete(lambda y: _inflated_loglik(model, x, y, t, theta), y, observed)
 
-    def _loglik_particles(self, ys, y, key):
+    def _loglik_particles(self, ys, y, key, observed):
         """Methods 4–5 from the likelihood particles `ys (M, R, m)`; `key` draws Method 4's
         integration points (one set per particle)."""
         radius = self.likelihood_radius.astype(ys.dtype)
-        if self.nan_as_missing:
-            y, ys = _observed_only(y, ys)
+        if observed is not None:
+            y, ys = _observed_only(y, ys, observed)
         if self.likelihood == "wasserstein_augmented":
             ll = self._map_particles(lambda yr: _augmented_loglik(yr, y, radius), ys, default_batch=None)
         else:
@@ -370,12 +366,12 @@ class DRParticleFilter(AbstractFilter):
             ll = self._map_particles(fn, ys, keys, default_batch=1)
         return ll
 
-    def _likelihoods(self, model, x, ys, y, t, key):
+    def _likelihoods(self, model, x, ys, y, t, key, observed):
         if self.likelihood == "inflate":
-            return self._loglik_inflate(model, x, y, t)
-        ll = self._loglik_particles(ys, y, key)
-        if self.nan_as_missing:
-            ll = jnp.where(jnp.all(jnp.isnan(y)), jnp.zeros_like(ll), ll)
+            return self._loglik_inflate(model, x, y, t, observed)
+        ll = self._loglik_particles(ys, y, key, observed)
+        if observed is not None:
+            ll = jnp.where(jnp.any(observed), ll, jnp.zeros_like(ll))
         return ll
 
     # ------------------------------------------------------------------- filter API
@@ -388,7 +384,7 @@ class DRParticleFilter(AbstractFilter):
         lw = jnp.full((self.num_particles,), -math.log(self.num_particles), model.dtype)
         return ParticleState(x0, lw)
 
-    def step(self, model: NonlinearModel, state: ParticleState, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model: NonlinearModel, state: ParticleState, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         """Algorithm 2, Steps 1–5 (see the class docstring)."""
         if key is None:
             raise ValueError("DRParticleFilter.step needs a PRNG key")
@@ -409,7 +405,7 @@ class DRParticleFilter(AbstractFilter):
         k_lik, k_points, k_near = jax.random.split(jax.random.fold_in(key, _TAG_LIKELIHOOD), 3)
         need_ys = self.likelihood != "inflate"
         ys = _likelihood_particles(model, x, k_lik, t, self.num_likelihood_particles) if need_ys else None
-        ll = self._likelihoods(model, x, ys, y, t, k_points)
+        ll = self._likelihoods(model, x, ys, y, t, k_points, observed)
         max_ll = jnp.max(ll)
         # Methods 6–7: outlier identification and treatment.
         if self.outlier is None:
@@ -417,8 +413,8 @@ class DRParticleFilter(AbstractFilter):
         else:
             eps = self.outlier_threshold.astype(ll.dtype)
             outlier = max_ll <= jnp.log(eps)
-            if self.nan_as_missing:
-                outlier = outlier & ~jnp.all(jnp.isnan(y))
+            if observed is not None:
+                outlier = outlier & jnp.any(observed)
             if self.outlier == "drop":
                 ll = jnp.where(outlier, jnp.zeros_like(ll), ll)
             else:
@@ -428,11 +424,11 @@ class DRParticleFilter(AbstractFilter):
                 else:
                     v = model.sample_measurement_noise(k_near, t, (self.num_likelihood_particles,))
                     cand = jax.vmap(lambda vr: model.observe(x[best], vr, t))(v)
-                observed = ~jnp.isnan(y) if self.nan_as_missing else jnp.ones(y.shape, bool)
-                diff = jnp.where(observed, cand - y, 0.0)
+                use = jnp.ones(y.shape, bool) if observed is None else observed
+                diff = jnp.where(use, cand - y, 0.0)
                 nearest = cand[jnp.argmin(jnp.sum(diff * diff, axis=1))]
-                y_near = jnp.where(observed, nearest, y)
-                ll_near = self._likelihoods(model, x, ys, y_near, t, k_points)
+                y_near = jnp.where(use, nearest, y)
+                ll_near = self._likelihoods(model, x, ys, y_near, t, k_points, observed)
                 ll = jnp.where(outlier, ll_near, ll)
         # Steps 4-5: weight update and resampling (as BootstrapPF).
         unnorm = logq + ll

@@ -21,20 +21,19 @@ from ._kalman import _gaussian_loglik, _step_result, predict, update
 class CKF(AbstractFilter):
     """Centralized Kalman filter: `jdrkf.KalmanFilter` on `model.as_linear()` (stacked
     measurements, block-diagonal `R` plus the known `cross_cov`). `ys` are the stacked
-    measurements `(T, m)`; `throw`, `nan_as_missing` as in `jdrkf.KalmanFilter`."""
+    measurements `(T, m)`; `throw`, `outputs` as in `jdrkf.KalmanFilter`."""
 
     throw: bool = eqx.field(default=True, static=True, kw_only=True)
-    nan_as_missing: bool = eqx.field(default=True, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
 
     def init(self, model: MultiSensorModel, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         lin = model.as_linear()
         pred = predict(lin, state, t, u)
-        filt, loglik, failed = update(lin, pred, y, t, nan_as_missing=self.nan_as_missing)
+        filt, loglik, failed = update(lin, pred, y, t, observed=observed)
         return filt, StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
 
 
@@ -181,8 +180,8 @@ class CovarianceIntersection(AbstractFilter):
 
     `ω` is found by projected gradient (see `ci_weights`); it is not differentiated.
     `info` holds `weights`, `gap`, `iterations`, `converged`; a non-converged weight search
-    reports `RESULTS.solver_not_converged`. `loglik` is not defined (NaN). NaN
-    observations are not supported (the run fails).
+    reports `RESULTS.solver_not_converged`. `loglik` is not defined (NaN). Missing
+    observations are not supported (`observed` must be `None`).
     """
 
     criterion: Literal["det", "trace"] = eqx.field(default="det", static=True)
@@ -190,6 +189,8 @@ class CovarianceIntersection(AbstractFilter):
     max_iter: int = eqx.field(default=200, static=True, kw_only=True)
     throw: bool = eqx.field(default=True, static=True, kw_only=True)
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
+    shared_covariance: ClassVar[bool] = True
+    supports_missing: ClassVar[bool] = False
 
     def __check_init__(self):
         if self.criterion not in ("det", "trace"):
@@ -200,14 +201,14 @@ class CovarianceIntersection(AbstractFilter):
     def init(self, model: MultiSensorModel, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         pred = predict(model.as_linear(), state, t, u)
         offs = [0]
         for d in model.dims:
             offs.append(offs[-1] + d)
         locals_, failed = [], jnp.zeros((), bool)
         for i in range(model.num_sensors):
-            filt_i, _, failed_i = update(model.sensor(i), pred, y[offs[i]:offs[i + 1]], t, nan_as_missing=False)
+            filt_i, _, failed_i = update(model.sensor(i), pred, y[offs[i]:offs[i + 1]], t)
             locals_.append(filt_i)
             failed = failed | failed_i
         means = jnp.stack([g.mean for g in locals_])
@@ -237,12 +238,12 @@ class MarginalDRKF(AbstractFilter):
     problem (16), `jdrkf.sets.marginal_mmse`), and updates (eq. 32):
     `x̂ = F x̂⁻ + K*(y − H F x̂⁻)`, `K* = S*_xy S*_yy⁻¹`, `V = S*_xx − K* S*_yx`.
 
-    With the default `nan_as_missing=False` the covariance path (`Σ`, `S*`, `K*`, `V`) does not
-    depend on the data, so under `jax.vmap(flt, in_axes=(None, None, 0))` over Monte Carlo runs
-    the worst-case problem is solved once per step for all runs, not once per run. With
-    `nan_as_missing=True`, missing components are decoupled as in `jdrkf.KalmanFilter` (zero
-    `H` row, unit noise, zero residual) before the worst case is solved: an approximation,
-    and the covariance path then depends on the data.
+    The covariance path (`Σ`, `S*`, `K*`, `V`) does not depend on the data, so under
+    `jax.vmap(flt, in_axes=(None, None, 0))` over Monte Carlo runs the worst-case problem is
+    solved once per step for all runs, not once per run. With the call's `observed` mask,
+    missing components are decoupled as in `jdrkf.KalmanFilter` (zero `H` row, unit noise,
+    zero residual) before the worst case is solved: an approximation, and the covariance
+    path then follows the mask (shared if the mask is).
 
     `predicted` holds `N(F x̂⁻, S*_xx)`; `loglik` is the log-density of `y_k` under the
     worst-case predictive `N(H F x̂⁻, S*_yy)`; `info` has the worst-case value, iterations,
@@ -254,7 +255,7 @@ class MarginalDRKF(AbstractFilter):
     rtol: float | None = eqx.field(default=None, static=True, kw_only=True)
     max_iter: int = eqx.field(default=2000, static=True, kw_only=True)
     throw: bool = eqx.field(default=True, static=True, kw_only=True)
-    nan_as_missing: bool = eqx.field(default=False, static=True, kw_only=True)
+    shared_covariance: ClassVar[bool] = True
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
 
     def __check_init__(self):
@@ -264,13 +265,12 @@ class MarginalDRKF(AbstractFilter):
     def init(self, model: MultiSensorModel, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         n = model.state_dim
         dtype = state.cov.dtype
         mean_pred = model.F @ state.mean
         sigma = model.joint_nominal_cov(state.cov)
-        if self.nan_as_missing:
-            observed = ~jnp.isnan(y)
+        if observed is not None:
             keep = jnp.concatenate([jnp.ones(n, bool), observed]).astype(dtype)
             unit = jnp.concatenate([jnp.zeros(n, dtype), 1.0 - observed.astype(dtype)])
             sigma = sigma * (keep[:, None] * keep[None, :]) + jnp.diag(unit)

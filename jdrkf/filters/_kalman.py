@@ -27,11 +27,12 @@ def predict(model: LinearModel, belief: Gaussian, t: Int[ArrayLike, ""], u: Floa
     return Gaussian(mean, cov)
 
 
-def _masked_measurement(mdl: LinearModel, y: Float[Array, " m"], noise_cov: Float[Array, "m m"] | None = None):
-    """Rows of missing (NaN) components are decoupled: `H` row and residual set to
-    zero and the `R` (or `noise_cov`) row/column replaced by the identity's. The
+def _masked_measurement(
+    mdl: LinearModel, y: Float[Array, " m"], observed: Bool[Array, " m"], noise_cov: Float[Array, "m m"] | None = None
+):
+    """Rows of missing components (`observed` false) are decoupled: `H` row and residual
+    set to zero and the `R` (or `noise_cov`) row/column replaced by the identity's. The
     update then equals the update with only the observed rows, with static shapes."""
-    observed = ~jnp.isnan(y)
     obs_f = observed.astype(y.dtype)
     h = mdl.H * obs_f[:, None]
     r = (mdl.R if noise_cov is None else noise_cov) * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
@@ -39,11 +40,12 @@ def _masked_measurement(mdl: LinearModel, y: Float[Array, " m"], noise_cov: Floa
     return observed, h, r, resid
 
 
-def _measurement(model: LinearModel, y: Float[Array, " m"], t, nan_as_missing: bool):
-    """`(observed, H, R, y − μ_v)` of step `t`, with missing rows decoupled when `nan_as_missing`."""
+def _measurement(model: LinearModel, y: Float[Array, " m"], t, observed: Bool[Array, " m"] | None):
+    """`(observed, H, R, y − μ_v)` of step `t`, with the rows that `observed` marks missing
+    decoupled (`observed=None`: all rows used, nothing depends on `y` but the residual)."""
     mdl = model.at(t)
-    if nan_as_missing:
-        return _masked_measurement(mdl, y)
+    if observed is not None:
+        return _masked_measurement(mdl, y, observed)
     return jnp.ones(y.shape, bool), mdl.H, mdl.R, y - mdl.noise_mean
 
 
@@ -59,16 +61,16 @@ def update(
     y: Float[Array, " m"],
     t: Int[ArrayLike, ""],
     *,
-    nan_as_missing: bool = True,
+    observed: Bool[Array, " m"] | None = None,
 ) -> tuple[Gaussian, Float[Array, ""], Bool[Array, ""]]:
     """Measurement update of `x_k` with `y_k`, Joseph form.
 
-    With `nan_as_missing` (default), NaN entries of `y` are missing components and
-    only the observed rows update. Returns the filtered Gaussian, the log-likelihood
-    increment `log N(y_k; H m⁻ + μ_v, H P⁻ Hᵀ + R)` over the observed components,
-    and a flag that is `True` when the innovation covariance was not positive definite.
+    With `observed`, only the components it marks update (the others are missing).
+    Returns the filtered Gaussian, the log-likelihood increment
+    `log N(y_k; H m⁻ + μ_v, H P⁻ Hᵀ + R)` over the observed components, and a flag that
+    is `True` when the innovation covariance was not positive definite.
     """
-    observed, h, r, resid = _measurement(model, y, t, nan_as_missing)
+    observed, h, r, resid = _measurement(model, y, t, observed)
     innov = resid - h @ predicted.mean
     s = linalg.symmetrize(h @ predicted.cov @ h.T + r)
     chol_s = linalg.cholesky(s)
@@ -82,7 +84,9 @@ def update(
 
 
 def _step_result(failed, belief: Gaussian) -> RESULTS:
-    finite = jnp.all(jnp.isfinite(belief.mean)) & jnp.all(jnp.isfinite(belief.cov))
+    """Per-step code from the covariance path (the means are checked once per run by
+    `AbstractFilter.__call__`, so this costs nothing per run when the covariances are shared)."""
+    finite = jnp.all(jnp.isfinite(belief.cov))
     return RESULTS.where(
         failed, RESULTS.nonpositive_innovation, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_state)
     )
@@ -91,36 +95,37 @@ def _step_result(failed, belief: Gaussian) -> RESULTS:
 class KalmanFilter(AbstractFilter):
     """The Kalman filter for `jdrkf.LinearModel` (time-varying, controls, noise means).
 
-    Each step predicts (`predict`) then updates (`update`, Joseph form, NaN entries of
-    `y` missing). It is the `θ = 0` special case of every DR filter in jdrkf and
-    the baseline `KF` / `TMKF` of Wang & Ye (2022).
+    Each step predicts (`predict`) then updates (`update`, Joseph form; components of
+    `y` that the call's `observed` mask marks missing are skipped). It is the `θ = 0`
+    special case of every DR filter in jdrkf and the baseline `KF` / `TMKF` of Wang &
+    Ye (2022).
 
     **Arguments:**
 
     - `throw`: raise (through `eqx.error_if`) when a run fails; else only set `result`.
-    - `nan_as_missing`: treat NaN entries of `ys` as missing (default). With `False`
-      the covariance recursion does not depend on the data, so under
-      `vmap(..., in_axes=(None, None, 0))` it is computed once for all runs instead of
-      once per run (much faster for large batches); NaN data then make the run fail.
+    - `outputs`: the `FilterResult` fields to fill (see `jdrkf.AbstractFilter`).
+
+    Under `jax.vmap` over runs the covariance recursion does not depend on the data
+    and is computed once for all runs; missing data enter through `observed`.
 
     **Example:**
 
     ```python
     result = jdrkf.KalmanFilter()(model, prior, ys)   # ys: (T, m)
-    batch = jax.vmap(jdrkf.KalmanFilter(), in_axes=(None, None, 0))(model, prior, ys_runs)
+    runs = jax.vmap(jdrkf.KalmanFilter(), in_axes=(None, None, 0))(model, prior, ys_runs)
+    missing = jdrkf.KalmanFilter()(model, prior, ys, observed=~jnp.isnan(ys))
     ```
     """
 
     throw: bool = eqx.field(default=True, static=True)
-    nan_as_missing: bool = eqx.field(default=True, static=True)
     shared_covariance: ClassVar[bool] = True
 
     def init(self, model: LinearModel, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         pred = predict(model, state, t, u)
-        filt, loglik, failed = update(model, pred, y, t, nan_as_missing=self.nan_as_missing)
+        filt, loglik, failed = update(model, pred, y, t, observed=observed)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
         return filt, out
 
@@ -143,14 +148,14 @@ class SteadyStateKalmanFilter(AbstractFilter):
     differentiable by implicit differentiation — see `jdrkf.linalg.solve_dare`); each
     step then costs matrix–vector products only. The prior's mean starts the
     recursion; its covariance is not used (reported covariances are the steady ones
-    from the first step on). Missing components of `y` (NaN) contribute no
-    correction (their gain columns are dropped; the gain is not recomputed) and the
-    log-likelihood marginalizes them, which costs an `m × m` Cholesky per step;
-    `nan_as_missing=False` skips that (NaN data then make the run fail).
+    from the first step on). Missing components of `y` (the call's `observed` mask)
+    contribute no correction (their gain columns are dropped; the gain is not
+    recomputed) and the log-likelihood marginalizes them, which costs an `m × m`
+    Cholesky per step.
     """
 
     throw: bool = eqx.field(default=True, static=True)
-    nan_as_missing: bool = eqx.field(default=True, static=True)
+    shared_covariance: ClassVar[bool] = True
 
     @staticmethod
     def solve(model: LinearModel) -> SteadyStateGain:
@@ -168,11 +173,11 @@ class SteadyStateKalmanFilter(AbstractFilter):
         ss = self.solve(model)
         return prior.mean, ss, linalg.cholesky(ss.innovation_cov)
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
-        return _constant_gain_step(self, model, state, y, u, None)
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
+        return _constant_gain_step(model, state, y, u, None, observed)
 
 
-def _constant_gain_step(flt, model, state, y, u, noise_cov, converged=True):
+def _constant_gain_step(model, state, y, u, noise_cov, observed, converged=True):
     """One step with the constant gain of `state = (mean, SteadyStateGain, chol(S))`;
     `noise_cov` is the measurement covariance behind `S` (default `R`; used for missing data)."""
     mean, ss, chol_s = state
@@ -180,9 +185,9 @@ def _constant_gain_step(flt, model, state, y, u, noise_cov, converged=True):
     if model.B is not None:
         mean_pred = mean_pred + model.B @ u
     innov = y - model.noise_mean - model.H @ mean_pred
-    if flt.nan_as_missing:
+    if observed is not None:
         # Drop missing components; the log-likelihood is the marginal of N(0, S) on the rest.
-        observed, h, r, _ = _masked_measurement(model, y, noise_cov)
+        _, h, r, _ = _masked_measurement(model, y, observed, noise_cov)
         innov = jnp.where(observed, innov, 0.0)
         chol_obs = linalg.cholesky(linalg.symmetrize(h @ ss.predicted_cov @ h.T + r))
         num_observed = jnp.sum(observed.astype(innov.dtype))

@@ -39,13 +39,22 @@ def particle_moments(particles: Float[Array, "N n"], log_weights: Float[Array, "
     return Gaussian(mean, cov)
 
 
-def _gaussian_loglik_particles(model: NonlinearModel, y, hx, nan_as_missing: bool):
-    """`log N(y; h(x_i), R)` for all particles with ONE Cholesky of `R` (missing rows of
-    `y` decoupled as in `jdrkf.filters._kalman._masked_measurement`): per-particle work
+def _skip_incomplete(loglik_fn, y, observed):
+    """Per-particle log-likelihoods `loglik_fn(y)`, zero for an observation with a missing
+    entry (non-Gaussian noise laws are not marginalized)."""
+    if observed is None:
+        return loglik_fn(y)
+    complete = jnp.all(observed)
+    ll = loglik_fn(jnp.where(observed, y, jnp.zeros((), y.dtype)))
+    return jnp.where(complete, ll, jnp.zeros_like(ll))
+
+
+def _gaussian_loglik_particles(model: NonlinearModel, y, hx, observed):
+    """`log N(y; h(x_i), R)` for all particles with ONE Cholesky of `R` (rows of `y` that
+    `observed` marks missing decoupled as in `jdrkf.filters._kalman._masked_measurement`): per-particle work
     is matrix products only, so no batched LAPACK call under `vmap` over particles."""
     r = model.R
-    if nan_as_missing:
-        observed = ~jnp.isnan(y)
+    if observed is not None:
         obs_f = observed.astype(r.dtype)
         r = r * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
         resid = jnp.where(observed[None, :], y[None, :] - hx, jnp.zeros((), hx.dtype))
@@ -94,9 +103,10 @@ class BootstrapPF(AbstractFilter):
     - `estimate`: `"weighted_mean"` or `"resampled_mean"`.
     - `return_particles` (static): add the weighted cloud of every step (before resampling)
       to `info` — memory `T·N·(n + 1)` per run.
-    - `throw`, `nan_as_missing`: as `jdrkf.KalmanFilter`. With the default Gaussian
-      measurement noise, NaN entries of `y` are marginalized out; with a
-      `measurement_noise` law, an observation with any NaN entry is skipped entirely.
+    - `throw`, `outputs`: as `jdrkf.KalmanFilter`. With the default Gaussian
+      measurement noise, entries of `y` that the call's `observed` mask marks missing
+      are marginalized out; with a `measurement_noise` law, an observation with any
+      missing entry is skipped entirely.
 
     `info` holds `ess` (before resampling) and `resampled` per step.
 
@@ -121,7 +131,6 @@ class BootstrapPF(AbstractFilter):
     estimate: str = eqx.field(default="weighted_mean", static=True, kw_only=True)
     return_particles: bool = eqx.field(default=False, static=True, kw_only=True)
     throw: bool = eqx.field(default=True, static=True, kw_only=True)
-    nan_as_missing: bool = eqx.field(default=True, static=True, kw_only=True)
 
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
     stochastic_init: ClassVar[bool] = True
@@ -146,16 +155,13 @@ class BootstrapPF(AbstractFilter):
         lw = jnp.full((self.num_particles,), -math.log(self.num_particles), model.dtype)
         return ParticleState(x0, lw)
 
-    def _loglik(self, model: NonlinearModel, y, particles, t):
+    def _loglik(self, model: NonlinearModel, y, particles, t, observed):
         hx = jax.vmap(lambda x: model.h(x, t))(particles)
         if model.measurement_noise is None:
-            return _gaussian_loglik_particles(model, y, hx, self.nan_as_missing)
-        ll = jax.vmap(lambda x: model.measurement_logpdf(y, x, t))(particles)
-        if self.nan_as_missing:
-            ll = jnp.where(jnp.any(jnp.isnan(y)), jnp.zeros_like(ll), ll)
-        return ll
+            return _gaussian_loglik_particles(model, y, hx, observed)
+        return _skip_incomplete(lambda y: jax.vmap(lambda x: model.measurement_logpdf(y, x, t))(particles), y, observed)
 
-    def step(self, model: NonlinearModel, state: ParticleState, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model: NonlinearModel, state: ParticleState, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         if key is None:
             raise ValueError("BootstrapPF.step needs a PRNG key")
         n_part = self.num_particles
@@ -163,7 +169,7 @@ class BootstrapPF(AbstractFilter):
         w = model.sample_process_noise(k_noise, t, (n_part,))
         x = jax.vmap(lambda xi, wi: model.transition(xi, wi, t))(state.particles, w)
         pred = particle_moments(x, state.log_weights)
-        unnorm = state.log_weights + self._loglik(model, y, x, t)
+        unnorm = state.log_weights + self._loglik(model, y, x, t, observed)
         new_x, new_lw, lw, filt, loglik, ess, do_resample, result = _weigh_and_resample(self, x, unnorm, k_res)
         info = {"ess": ess, "resampled": do_resample}
         if self.return_particles:

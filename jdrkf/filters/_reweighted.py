@@ -14,7 +14,7 @@ new `x`, starting from `x = x̂⁻`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Literal
 
 import equinox as eqx
@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .. import linalg
 from .._gaussian import Gaussian
 from ..sets._weights import AbstractWeight, channel_param, student_t_weight
-from ._base import AbstractFilter, StepOutput
+from ._base import DEFAULT_OUTPUTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
 __all__ = ["RBKF", "STKF", "STKF_AR1", "STKF_AR2", "VBKF", "IRLSResult", "irls_update"]
@@ -198,7 +198,6 @@ class _IRLSFilter(AbstractFilter):
     tol: eqx.AbstractVar[float]
     fixed_iterations: eqx.AbstractVar[bool]
     covariance: eqx.AbstractVar[str]
-    nan_as_missing: eqx.AbstractVar[bool]
 
     def _weights(self) -> tuple[WeightFn | None, WeightFn | None]:
         raise NotImplementedError
@@ -206,9 +205,9 @@ class _IRLSFilter(AbstractFilter):
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         pred = predict(model, state, t, u)
-        observed, h, r, resid = _measurement(model, y, t, self.nan_as_missing)
+        observed, h, r, resid = _measurement(model, y, t, observed)
         wx, wy = self._weights()
         sol = irls_update(
             pred, h, r, resid, wx, wy,
@@ -232,7 +231,7 @@ _COMMON_ARGS = """
       `(I − K̃H)P̃(I − K̃H)ᵀ + K̃R̃K̃ᵀ`, the weighted-least-squares / VB covariance that
       makes Theorem 4 and Proposition 2 exact) or `"nominal"` (`P⁻` and `R` in place of
       `P̃`, `R̃`, as line 18 is printed and as the authors' MATLAB code computes it).
-    - `throw`, `nan_as_missing`: as in `jdrkf.KalmanFilter`.
+    - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
     `info` holds the iteration count and the final weights per step; `loglik` is the
     Gaussian log-density of the innovation under the final `HP̃Hᵀ + R̃` (a
@@ -273,7 +272,6 @@ class RBKF(_IRLSFilter):
     fixed_iterations: bool = eqx.field(static=True)
     covariance: str = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -285,13 +283,13 @@ class RBKF(_IRLSFilter):
         fixed_iterations: bool = False,
         covariance: Covariance = "reweighted",
         throw: bool = True,
-        nan_as_missing: bool = True,
+        outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
         self.process_weight = _check_weight("process_weight", process_weight)
         self.measurement_weight = _check_weight("measurement_weight", measurement_weight)
         _check_static(max_iter, tol, covariance)
         self.max_iter, self.tol, self.fixed_iterations, self.covariance = max_iter, float(tol), fixed_iterations, covariance
-        self.throw, self.nan_as_missing = throw, nan_as_missing
+        self.throw, self.outputs = throw, outputs
 
     def _weights(self):
         return self.process_weight, self.measurement_weight
@@ -342,7 +340,6 @@ class STKF(_IRLSFilter):
     fixed_iterations: bool = eqx.field(static=True)
     covariance: str = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -356,7 +353,7 @@ class STKF(_IRLSFilter):
         fixed_iterations: bool = False,
         covariance: Covariance = "reweighted",
         throw: bool = True,
-        nan_as_missing: bool = True,
+        outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
         self.nu_x = None if nu_x is None else channel_param("nu_x", nu_x, allow_inf=True)
         self.tau2_x = channel_param("tau2_x", tau2_x)
@@ -364,7 +361,7 @@ class STKF(_IRLSFilter):
         self.tau2_y = channel_param("tau2_y", tau2_y)
         _check_static(max_iter, tol, covariance)
         self.max_iter, self.tol, self.fixed_iterations, self.covariance = max_iter, float(tol), fixed_iterations, covariance
-        self.throw, self.nan_as_missing = throw, nan_as_missing
+        self.throw, self.outputs = throw, outputs
 
     def _weights(self):
         wx = None if self.nu_x is None else (lambda e: student_t_weight(e, self.nu_x, self.tau2_x))
@@ -400,7 +397,7 @@ class STKF_AR1(AbstractFilter):
     **Arguments:** `nu_x`, `tau2_x`, `rho_x` (process channels; scalars or `(n,)`),
     `nu_y`, `tau2_y`, `rho_y` (measurement channels; scalars or `(m,)`): initial
     `ν`, `τ²` and forgetting factors `ρ ∈ (0, 1]`; `nu = inf` disables a channel.
-    `max_iter`, `tol`, `fixed_iterations`, `covariance`, `throw`, `nan_as_missing`:
+    `max_iter`, `tol`, `fixed_iterations`, `covariance`, `throw`, `outputs`:
     as in `STKF` (defaults: the authors' `student_forward_adap`, 4 iterations, 1e-5).
     `gate` (static, optional): the authors' `student_forward_adap_y2` outlier gate, not
     in the paper: the measurement channels' `τ²` update is skipped (`τ²` kept) at
@@ -430,7 +427,6 @@ class STKF_AR1(AbstractFilter):
     fixed_iterations: bool = eqx.field(static=True)
     covariance: str = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -449,7 +445,7 @@ class STKF_AR1(AbstractFilter):
         fixed_iterations: bool = False,
         covariance: Covariance = "reweighted",
         throw: bool = True,
-        nan_as_missing: bool = True,
+        outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
         self.nu_x = channel_param("nu_x", nu_x, allow_inf=True)
         self.tau2_x = channel_param("tau2_x", tau2_x)
@@ -466,7 +462,7 @@ class STKF_AR1(AbstractFilter):
         self.gate = None if gate is None else float(gate)
         _check_static(max_iter, tol, covariance)
         self.max_iter, self.tol, self.fixed_iterations, self.covariance = max_iter, float(tol), fixed_iterations, covariance
-        self.throw, self.nan_as_missing = throw, nan_as_missing
+        self.throw, self.outputs = throw, outputs
 
     def init(self, model, prior: Gaussian):
         n, m = model.state_dim, model.obs_dim
@@ -481,7 +477,7 @@ class STKF_AR1(AbstractFilter):
         dtype = prior.cov.dtype
         return prior, nu.astype(dtype), tau2.astype(dtype)
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         belief, nu_prev, tau2_prev = state
         n = belief.mean.shape[0]
         m = y.shape[0]
@@ -492,7 +488,7 @@ class STKF_AR1(AbstractFilter):
         tau2_minus = jnp.where(adaptive, rho * tau2_prev, tau2_prev)
 
         pred = predict(model, belief, t, u)
-        observed, h, r, resid = _measurement(model, y, t, self.nan_as_missing)
+        observed, h, r, resid = _measurement(model, y, t, observed)
         sol = irls_update(
             pred, h, r, resid,
             lambda e: student_t_weight(e, nu[:n], tau2_minus[:n]),
@@ -568,7 +564,7 @@ class VBKF(AbstractFilter):
       `λ = β⁻/α`) or `"predicted"` (update `β` first at the predicted mean/covariance).
     - `covariance_in_iterations` (static, default `True`): include `½ diag(W P Wᵀ)` in
       `β` inside the iterations (it always enters the `β` carried to the next step).
-    - `throw`, `nan_as_missing`: as in `jdrkf.KalmanFilter` (missing channels keep
+    - `throw`, `outputs`: as in `jdrkf.KalmanFilter` (missing channels keep
       their `α`, `β`).
 
     Theorem 4 (STKF ≡ VBKF with fixed priors) is exact for the settings of
@@ -596,7 +592,6 @@ class VBKF(AbstractFilter):
     start: str = eqx.field(static=True)
     covariance_in_iterations: bool = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -610,7 +605,7 @@ class VBKF(AbstractFilter):
         start: Literal["scale", "predicted"] = "scale",
         covariance_in_iterations: bool = True,
         throw: bool = True,
-        nan_as_missing: bool = True,
+        outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
         self.alpha0 = channel_param("alpha0", alpha0)
         self.beta0 = channel_param("beta0", beta0)
@@ -623,7 +618,7 @@ class VBKF(AbstractFilter):
             raise ValueError(f"start must be 'scale' or 'predicted', got {start!r}")
         self.num_iter, self.fixed_prior, self.shape_increment = num_iter, fixed_prior, float(shape_increment)
         self.start, self.covariance_in_iterations = start, covariance_in_iterations
-        self.throw, self.nan_as_missing = throw, nan_as_missing
+        self.throw, self.outputs = throw, outputs
 
     @classmethod
     def student_t_equivalent(
@@ -646,10 +641,10 @@ class VBKF(AbstractFilter):
         _check_len("rho", self.rho, m)
         return prior, alpha, beta
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         belief, alpha_prev, beta_prev = state
         pred = predict(model, belief, t, u)
-        observed, h, r, resid = _measurement(model, y, t, self.nan_as_missing)
+        observed, h, r, resid = _measurement(model, y, t, observed)
         obs_f = observed.astype(resid.dtype)
         m = resid.shape[0]
         if self.fixed_prior:

@@ -3,6 +3,7 @@ the unscented Kalman filter and the sampling ("ensemble") Gaussian filter."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import ClassVar
 
 import equinox as eqx
@@ -15,7 +16,7 @@ from .. import linalg
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
 from .._validation import is_concrete
-from ._base import RESULTS, AbstractFilter, StepOutput
+from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik
 
 
@@ -75,17 +76,16 @@ def _weighted_outer(a, b, wc):
     return (a * wc[:, None]).T @ b
 
 
-def _moment_update(pred_mean, pred_cov, dx, y_pred, dy, wc, noise_cov, y, nan_as_missing):
+def _moment_update(pred_mean, pred_cov, dx, y_pred, dy, wc, noise_cov, y, observed):
     """Kalman-type update from the cross moments of prior state and measurement points
     (seed 003, Section III-A; Simon 2006, eqs. (14.64)–(14.67)):
     `P_yy = Σ W^c dy dyᵀ + R`, `P_xy = Σ W^c dx dyᵀ`, `K = P_xy P_yy⁻¹`,
-    `m⁺ = m⁻ + K (y − ŷ)`, `P⁺ = P⁻ − K P_yy Kᵀ`. NaN entries of `y` are missing: their
-    rows are decoupled (identity in `P_yy`, zero in `P_xy` and the innovation)."""
+    `m⁺ = m⁻ + K (y − ŷ)`, `P⁺ = P⁻ − K P_yy Kᵀ`. Entries of `y` that `observed` marks
+    missing are decoupled (identity in `P_yy`, zero in `P_xy` and the innovation)."""
     pyy = _weighted_outer(dy, dy, wc) + noise_cov
     pxy = _weighted_outer(dx, dy, wc)
     innov = y - y_pred
-    if nan_as_missing:
-        observed = ~jnp.isnan(y)
+    if observed is not None:
         obs_f = observed.astype(y.dtype)
         pyy = pyy * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
         pxy = pxy * obs_f[None, :]
@@ -112,7 +112,7 @@ def _result(points_ok, failed, belief: Gaussian) -> RESULTS:
     )
 
 
-def _ga_step(model: NonlinearModel, state: Gaussian, y, t, draw, redraw: bool, nan_as_missing: bool):
+def _ga_step(model: NonlinearModel, state: Gaussian, y, t, draw, redraw: bool, observed):
     """One Gaussian-approximation step with points from `draw(mean, cov) -> (points, W^m, W^c, ok)`.
 
     Additive noise: points of `N(m, P)` go through `f`; `P⁻ = Σ W^c dx dxᵀ + Q`. The
@@ -155,7 +155,7 @@ def _ga_step(model: NonlinearModel, state: Gaussian, y, t, draw, redraw: bool, n
         noise_cov = jnp.zeros((model.obs_dim, model.obs_dim), y.dtype)
     y_pred, dy = _moments(ys, wm)
     pred = Gaussian(pred_mean, pred_cov)
-    filt, loglik, failed = _moment_update(pred_mean, pred_cov, dx, y_pred, dy, wc, noise_cov, y, nan_as_missing)
+    filt, loglik, failed = _moment_update(pred_mean, pred_cov, dx, y_pred, dy, wc, noise_cov, y, observed)
     return filt, StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_result(ok, failed, filt))
 
 
@@ -186,7 +186,7 @@ class UnscentedKF(AbstractFilter):
       propagated points (`False`: the authors' `UKF.m`). With additive noise the
       reused points do not carry `Q`, so `P_yy` and `P_xy` omit it and the filter is
       *not* the Kalman filter on a linear model; with `True` it is (exactly).
-    - `throw`, `nan_as_missing`: as in `jdrkf.KalmanFilter`.
+    - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
     Additive noise (`model.additive`): `d = n`, `Q` and `R` are added to the transformed
     covariances (with a `G`, put `G Q Gᵀ` in `Q`). General noise: the augmented UKF over
@@ -205,7 +205,6 @@ class UnscentedKF(AbstractFilter):
     sigma_points: str = eqx.field(static=True)
     redraw: bool = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
 
     def __init__(
@@ -217,7 +216,7 @@ class UnscentedKF(AbstractFilter):
         sigma_points: str = "merwe",
         redraw: bool = True,
         throw: bool = True,
-        nan_as_missing: bool = True,
+        outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
         if sigma_points not in _SIGMA_POINTS:
             raise ValueError(f"sigma_points must be one of {_SIGMA_POINTS}, got {sigma_points!r}")
@@ -228,7 +227,7 @@ class UnscentedKF(AbstractFilter):
             raise ValueError(f"alpha must be positive, got {float(alpha)}")
         self.alpha, self.beta, self.kappa = alpha, beta, kappa
         self.sigma_points, self.redraw = sigma_points, bool(redraw)
-        self.throw, self.nan_as_missing = bool(throw), bool(nan_as_missing)
+        self.throw, self.outputs = bool(throw), outputs
 
     def _dims(self, model: NonlinearModel) -> tuple[int, ...]:
         n, q, r = model.state_dim, model.process_noise_dim, model.measurement_noise_dim
@@ -247,8 +246,8 @@ class UnscentedKF(AbstractFilter):
     def _draw(self, mean, cov):
         return sigma_points(mean, cov, self.sigma_points, self.alpha, self.beta, self.kappa)
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
-        return _ga_step(model, state, y, t, self._draw, self.redraw, self.nan_as_missing)
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
+        return _ga_step(model, state, y, t, self._draw, self.redraw, observed)
 
 
 class EnsembleKF(AbstractFilter):
@@ -272,20 +271,19 @@ class EnsembleKF(AbstractFilter):
     num_samples: int = eqx.field(static=True)
     redraw: bool = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
 
-    def __init__(self, num_samples: int, *, redraw: bool = False, throw: bool = True, nan_as_missing: bool = True):
+    def __init__(self, num_samples: int, *, redraw: bool = False, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 2:
             raise ValueError(f"num_samples must be an int >= 2, got {num_samples!r}")
         self.num_samples, self.redraw = num_samples, bool(redraw)
-        self.throw, self.nan_as_missing = bool(throw), bool(nan_as_missing)
+        self.throw, self.outputs = bool(throw), outputs
 
     def init(self, model: NonlinearModel, prior: Gaussian) -> Gaussian:
         _check_prior(prior)
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         if key is None:
             raise ValueError("EnsembleKF is stochastic: pass a PRNG key, e.g. filter(model, prior, ys, jax.random.key(0))")
         keys = iter(jax.random.split(key, 2))
@@ -297,4 +295,4 @@ class EnsembleKF(AbstractFilter):
             w = jnp.full((num,), 1.0 / num, mean.dtype)
             return mean + z @ chol.T, w, w, jnp.all(jnp.isfinite(chol))
 
-        return _ga_step(model, state, y, t, draw, self.redraw, self.nan_as_missing)
+        return _ga_step(model, state, y, t, draw, self.redraw, observed)

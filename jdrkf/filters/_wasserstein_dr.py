@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from typing import ClassVar
 
 import equinox as eqx
@@ -19,7 +20,7 @@ from .._models import LinearModel
 from ..sets._base import radius
 from ..sets._solve import _dense_solve, default_rtol, worst_case
 from ..sets._wasserstein import Wasserstein, _oracle_residual
-from ._base import AbstractFilter
+from ._base import DEFAULT_OUTPUTS, AbstractFilter
 from ._dr import _decoupled_step
 from ._kalman import SteadyStateGain, _constant_gain_step
 
@@ -71,7 +72,7 @@ class WassersteinDRKF(AbstractFilter):
     `jdrkf.closed_loop` does).
 
     **Arguments:** `theta_x`, `theta_v` (radii ≥ 0, differentiable); `rtol`, `max_iter`,
-    `throw`, `nan_as_missing` as in `jdrkf.DRKF`.
+    `throw`, `outputs` as in `jdrkf.DRKF`.
     """
 
     theta_x: Float[Array, ""]
@@ -79,27 +80,25 @@ class WassersteinDRKF(AbstractFilter):
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, theta_x: Float[ArrayLike, ""], theta_v: Float[ArrayLike, ""], *, rtol: float | None = None,
-                 max_iter: int = 500, throw: bool = True, nan_as_missing: bool = True):
+                 max_iter: int = 500, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.theta_x = radius("theta_x", theta_x)
         self.theta_v = radius("theta_v", theta_v)
-        self.rtol, self.max_iter, self.throw, self.nan_as_missing = rtol, max_iter, throw, nan_as_missing
+        self.rtol, self.max_iter, self.throw, self.outputs = rtol, max_iter, throw, outputs
 
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
-        return _decoupled_step(self, model, state, y, t, u, Wasserstein(self.theta_x), Wasserstein(self.theta_v), None)
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
+        return _decoupled_step(self, model, state, y, t, u, observed, Wasserstein(self.theta_x), Wasserstein(self.theta_v), None)
 
     def covariance_recursion(self, model: LinearModel, nominal_prior_cov: Float[ArrayLike, "n n"], num_steps: int) -> CovarianceRecursion:
         """Run the covariance part of the filter (the DR Riccati recursion (15)) for
         `num_steps` measurement updates, starting from the pseudo-nominal prior
         covariance `Σ̂⁻_0` of the first measured state. No data are needed: with
-        `nan_as_missing=False`-style full observations the covariances do not depend
-        on them. Its fixed point is the limit of the time-varying filter, which in
+        full observations the covariances do not depend on them. Its fixed point is the limit of the time-varying filter, which in
         general differs from `SteadyStateDRKF.solve` (see there)."""
         a, h, w, v = _time_invariant(model, "covariance_recursion")
         nominal = jnp.asarray(nominal_prior_cov, a.dtype)
@@ -413,7 +412,7 @@ class SteadyStateDRKF(AbstractFilter):
     iterations in lockstep (several times slower per solve).
 
     **Arguments:** `theta_x`, `theta_v` (radii ≥ 0, differentiable); `max_iter`
-    (Newton iterations per continuation stage, default 20); `throw`, `nan_as_missing` as in
+    (Newton iterations per continuation stage, default 20); `throw`, `outputs` as in
     `jdrkf.SteadyStateKalmanFilter`. A solve that does not converge makes `init` fail
     (with `throw`) or the run report `RESULTS.solver_not_converged`.
     """
@@ -422,13 +421,13 @@ class SteadyStateDRKF(AbstractFilter):
     theta_v: Float[Array, ""]
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
-    nan_as_missing: bool = eqx.field(static=True)
+    shared_covariance: ClassVar[bool] = True
 
     def __init__(self, theta_x: Float[ArrayLike, ""], theta_v: Float[ArrayLike, ""], *, max_iter: int = 20,
-                 throw: bool = True, nan_as_missing: bool = True):
+                 throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.theta_x = radius("theta_x", theta_x)
         self.theta_v = radius("theta_v", theta_v)
-        self.max_iter, self.throw, self.nan_as_missing = int(max_iter), throw, nan_as_missing
+        self.max_iter, self.throw, self.outputs = int(max_iter), throw, outputs
 
     def solve(self, model: LinearModel) -> SteadyStateDR:
         """Least-favourable stationary covariances and the constant gain of (14)."""
@@ -442,7 +441,7 @@ class SteadyStateDRKF(AbstractFilter):
         ss = SteadyStateGain(predicted_cov=sol.prior_cov, innovation_cov=innov, gain=sol.gain, filtered_cov=sol.posterior_cov)
         return prior.mean, ss, linalg.cholesky(innov), sol.noise_cov, sol.converged
 
-    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None):
+    def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         mean, ss, chol_s, noise_cov, converged = state
-        (mean, ss, chol_s), out = _constant_gain_step(self, model, (mean, ss, chol_s), y, u, noise_cov, converged)
+        (mean, ss, chol_s), out = _constant_gain_step(model, (mean, ss, chol_s), y, u, noise_cov, observed, converged)
         return (mean, ss, chol_s, noise_cov, converged), out
