@@ -8,6 +8,7 @@ import importlib.metadata as md
 import os
 import platform
 import subprocess
+import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -69,3 +70,38 @@ def versions(packages=("jax", "jaxlib", "equinox", "cvxpy", "clarabel", "numpy",
 def parse_size(s: str) -> tuple[int, int]:
     n, m = s.lower().split("x")
     return int(n), int(m)
+
+
+def set_platform(name: str) -> None:
+    """Select the JAX platform of this benchmark process (`"cpu"` or `"gpu"`) before JAX
+    starts; `"gpu"` fails early with a clear message when no GPU backend is available."""
+    os.environ["JAX_PLATFORMS"] = "cuda" if name == "gpu" else "cpu"
+    if "jax" in sys.modules:  # imported already (cvxpy imports it): JAX read the variable then
+        sys.modules["jax"].config.update("jax_platforms", os.environ["JAX_PLATFORMS"])
+    if name == "gpu":
+        import jax
+
+        try:
+            jax.devices("gpu")
+        except (RuntimeError, AssertionError) as e:  # AssertionError: jax 0.10 with jax_platforms set in the config
+            raise SystemExit(f"--platform gpu: no GPU backend available to JAX ({str(e) or 'no visible NVIDIA GPU'}); install jax[cuda12] on a GPU machine") from e
+
+
+def check_platform(name: str) -> None:
+    """For a parent process that runs the timed work in children: fail early (exit status 1,
+    set_platform's message) when `name` is "gpu" and JAX has no GPU backend. Checked in a
+    short-lived subprocess, so that the parent never starts a JAX backend itself (on a GPU
+    it would hold device memory the children need)."""
+    if name == "cpu":
+        return
+    here = os.path.dirname(os.path.abspath(__file__))
+    code = f"import sys; sys.path.insert(0, {here!r}); from _provenance import set_platform; set_platform({name!r})"
+    if subprocess.run([sys.executable, "-c", code]).returncode != 0:
+        raise SystemExit(1)
+
+
+def device_summary(jax) -> str:
+    """The devices JAX computes on, e.g. 'cpu (1 device)' or 'gpu: NVIDIA H100 80GB HBM3 (1 device)'."""
+    devs = jax.devices()
+    kind = devs[0].device_kind if devs[0].platform != "cpu" else ""
+    return f"{devs[0].platform}{': ' + kind if kind else ''} ({len(devs)} device{'s' if len(devs) > 1 else ''})"

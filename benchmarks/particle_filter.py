@@ -25,13 +25,24 @@ the wall time depends on the load, so the process CPU time of each call is recor
 (`cpu s`, median; all threads of the process counted) and the speed-up is reported both
 ways. Accuracy: RMSE over time
 of each run vs the true states, mean and 95% CI over runs (`jdrkf.metrics.mean_ci`):
-the rows must agree statistically (different random numbers). Goal: jdrkf systematic ≥ 5×
-faster than the NumPy PF at N = 1000, T = 100, 1000 runs.
+the rows must agree statistically (different random numbers).
+
+Goal (CPU, `--platform cpu`, N = 1000, T = 100, 1000 runs, per dtype): jdrkf systematic
+uses ≥ 2.5× less process CPU time than the NumPy PF (NumPy CPU s / jdrkf CPU s, both
+measured with `time.process_time()` around the timed calls, in the same run). The
+wall-time ratio is reported as an informative row (it also counts the second core
+XLA uses, and the machine's load).
+
+`--platform gpu` runs the jdrkf rows on a GPU (NumPy stays on the CPU; the CPU-time
+goal is then not evaluated) and adds a GPU-scale row: systematic resampling with
+`--gpu-particles` (default 1e4) particles × `--gpu-runs` (default 1e3) runs, T steps,
+reported in particle-steps/s.
 
 Usage:
 
     python benchmarks/particle_filter.py            # full run (N = 1000, T = 100, 1000 runs, both dtypes)
     python benchmarks/particle_filter.py --quick    # smoke run (a few seconds)
+    python benchmarks/particle_filter.py --platform gpu --sis   # on a GPU, + the N = 1e4 x 1e3 runs row
     python benchmarks/particle_filter.py --dtype float32 --schemes systematic --sis
 """
 
@@ -53,10 +64,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 
-from _provenance import cpu_model, git_info, loadavg, package_source_hash, versions  # noqa: E402
+from _provenance import cpu_model, device_summary, git_info, loadavg, package_source_hash, set_platform, versions  # noqa: E402
 
 Q, R, P0 = 10.0, 1.0, 1.0
-GOAL_RATIO = 5.0
+GOAL_CPU_RATIO = 2.5  # NumPy process CPU s / jdrkf process CPU s
 SCHEMES = ("systematic", "stratified", "residual", "multinomial")
 
 
@@ -129,7 +140,7 @@ def _time_calls(fn, repeats):
     return statistics.median(wall), min(wall), statistics.median(cpu)
 
 
-def bench_jdrkf(args, ys, states, dtype_name):
+def bench_jdrkf(args, ys, states, dtype_name, particles=None, configs=None, label="jdrkf"):
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -151,19 +162,23 @@ def bench_jdrkf(args, ys, states, dtype_name):
     ys_j = jnp.asarray(ys[..., None], dtype)
     keys = jax.random.split(jax.random.key(args.seed + 1), ys.shape[0])
     rows = []
-    configs = [(scheme, 0.5) for scheme in args.schemes] + ([("none (SIS)", 0.0)] if args.sis else [])
+    particles = particles or args.particles
+    if configs is None:
+        configs = [(scheme, 0.5) for scheme in args.schemes] + ([("none (SIS)", 0.0)] if args.sis else [])
     for scheme, threshold in configs:
         opts = {"resampling": scheme} if threshold > 0 else {}
-        pf = BootstrapPF(args.particles, ess_threshold=threshold, throw=False, **opts)
+        pf = BootstrapPF(particles, ess_threshold=threshold, throw=False, **opts)
         fn = eqx.filter_jit(jax.vmap(lambda m, p, y, k, pf=pf: pf(m, p, y, k).filtered_means[..., 0],
                                      in_axes=(None, None, 0, 0)))
         t0 = time.perf_counter()
         est = np.asarray(jax.block_until_ready(fn(model, prior, ys_j, keys)))
         first = time.perf_counter() - t0
         run_s, min_s, cpu_s = _time_calls(lambda fn=fn: jax.block_until_ready(fn(model, prior, ys_j, keys)), args.repeats)
-        row = {"impl": "jdrkf", "scheme": scheme, "dtype": dtype_name, "run_s": run_s, "min_s": min_s, "cpu_s": cpu_s,
-               "compile_s": first - run_s, **accuracy(states, est)}
-        log(f"  jdrkf {scheme} {dtype_name}: {run_s:.3g} s wall, {cpu_s:.3g} s CPU (compile {first - run_s:.2g} s), "
+        row = {"impl": label, "scheme": scheme, "dtype": dtype_name, "particles": particles, "runs": ys.shape[0],
+               "steps": ys.shape[1], "run_s": run_s, "min_s": min_s, "cpu_s": cpu_s,
+               "compile_s": first - run_s, "particle_steps_per_s": particles * ys.size / run_s, **accuracy(states, est)}
+        log(f"  {label} {scheme} {dtype_name} (N={particles}, {ys.shape[0]} runs): {run_s:.3g} s wall, {cpu_s:.3g} s CPU "
+            f"(compile {first - run_s:.2g} s), {row['particle_steps_per_s']:.3g} particle-steps/s, "
             f"RMSE {row['rmse_mean']:.3f}")
         rows.append(row)
     return rows
@@ -182,10 +197,11 @@ def accuracy(states, est) -> dict:
 
 def build_markdown(r) -> str:
     c, m = r["config"], r["meta"]
-    L = [f"# Bootstrap particle filter: jdrkf vs NumPy ({'quick' if c['quick'] else 'full'} run)", "",
+    L = [f"# Bootstrap particle filter ({c.get('platform', 'cpu').upper()}): jdrkf vs NumPy "
+         f"({'quick' if c['quick'] else 'full'} run)", "",
          f"Growth model of seed 003 (Q = {Q:g}, R = {R:g}), N = {c['particles']} particles, T = {c['steps']}, "
-         f"{c['runs']} runs, dtypes {', '.join(c['dtype'])}. JAX device {', '.join(m['jax_devices'])} "
-         f"(backend {m['jax_backend']}). CPU: {m['cpu_model']} ({m['cpu_affinity']} usable cores), "
+         f"{c['runs']} runs, dtypes {', '.join(c['dtype'])}. JAX device: {m.get('device')} ({', '.join(m['jax_devices'])}, "
+         f"backend {m['jax_backend']}); NumPy on the CPU. CPU: {m['cpu_model']} ({m['cpu_affinity']} usable cores), "
          f"load {m['loadavg']['start']} → {m['loadavg']['end']}. jax {m['versions'].get('jax')}, "
          f"numpy {m['versions'].get('numpy')}. Source {m['jdrkf_source_sha256']} (git {m['git']['commit']}, "
          f"dirty {m['git']['jdrkf_dirty']}).", "",
@@ -194,19 +210,27 @@ def build_markdown(r) -> str:
          "| implementation | resampling | dtype | run s (median) | CPU s | compile s | particle-steps/s | "
          "speed-up vs NumPy (wall) | speed-up (CPU) | RMSE (mean, 95% CI) |",
          "|---|---|---|---|---|---|---|---|---|---|"]
-    work = c["particles"] * c["steps"] * c["runs"]
     for x in r["rows"]:
+        work = x.get("particles", c["particles"]) * x.get("steps", c["steps"]) * x.get("runs", c["runs"])
         np_row = next((y for y in r["rows"] if y["impl"] == "numpy" and y["dtype"] == x["dtype"]), None)
+        if x.get("particles", c["particles"]) != c["particles"] or x.get("runs", c["runs"]) != c["runs"]:
+            np_row = None  # the GPU-scale row: another problem size
         sp = f"{np_row['run_s'] / x['run_s']:.2f}×" if np_row else "–"
         sp_cpu = f"{np_row['cpu_s'] / x['cpu_s']:.2f}×" if np_row else "–"
         comp = f"{x['compile_s']:.2f}" if x.get("compile_s") is not None else "–"
-        L.append(f"| {x['impl']} | {x['scheme']} | {x['dtype']} | {x['run_s']:.3g} | {x['cpu_s']:.3g} | {comp} | "
+        impl = x["impl"] if np_row or x["impl"] == "numpy" else f"{x['impl']} (N = {x['particles']}, {x['runs']} runs)"
+        L.append(f"| {impl} | {x['scheme']} | {x['dtype']} | {x['run_s']:.3g} | {x['cpu_s']:.3g} | {comp} | "
                  f"{work / x['run_s']:.3g} | {sp} | {sp_cpu} | "
                  f"{x['rmse_mean']:.3f} [{x['rmse_ci95'][0]:.3f}, {x['rmse_ci95'][1]:.3f}] |")
     L += ["", "## Goals", ""]
-    for g in r["goals"]:
-        verdict = "not evaluated" if g["met"] is None else ("met" if g["met"] else "not met")
-        L.append(f"- {g['goal']}: **{verdict}** — {g['detail']}")
+    for informative in (False, True):
+        if informative and any(g.get("informative") for g in r["goals"]):
+            L += ["", "Informative (not goals):", ""]
+        for g in r["goals"]:
+            if bool(g.get("informative")) != informative:
+                continue
+            verdict = "not evaluated" if g["met"] is None else ("met" if g["met"] else "not met")
+            L.append(f"- {g['goal']}: {g['detail']}" if informative else f"- {g['goal']}: **{verdict}** — {g['detail']}")
     L.append("")
     return "\n".join(L)
 
@@ -224,16 +248,22 @@ def main(argv=None) -> int:
                    help="dtype(s) of the jdrkf and NumPy rows (default: both)")
     p.add_argument("--sis", action="store_true", help="add a jdrkf row without resampling (ess_threshold=0)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--platform", choices=["cpu", "gpu"], default="cpu", help="JAX platform of the jdrkf rows (NumPy: CPU)")
+    p.add_argument("--gpu-particles", type=int, default=None, help="N of the GPU-scale row (default 1e4; 1e3 with --quick)")
+    p.add_argument("--gpu-runs", type=int, default=None, help="runs of the GPU-scale row (default 1e3; 100 with --quick)")
     p.add_argument("--out", default=os.path.join(HERE, "results"))
-    p.add_argument("--tag", default=None, help="output file stem suffix (default 'cpu', '_quick' appended with --quick)")
+    p.add_argument("--tag", default=None, help="output file stem suffix (default the platform, '_quick' appended with --quick)")
     args = p.parse_args(argv)
     args.steps = args.steps or (50 if args.quick else 100)
     args.runs = args.runs or (50 if args.quick else 1000)
     if args.quick:
         args.repeats = min(args.repeats, 2)
+    args.gpu_particles = args.gpu_particles or (1000 if args.quick else 10_000)
+    args.gpu_runs = args.gpu_runs or (100 if args.quick else 1000)
     if args.tag is None:
-        args.tag = "cpu" + ("_quick" if args.quick else "")
+        args.tag = args.platform + ("_quick" if args.quick else "")
 
+    set_platform(args.platform)
     import jax
 
     if "float64" in args.dtype:
@@ -243,6 +273,7 @@ def main(argv=None) -> int:
             "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
             "platform": platform.platform(), "versions": versions(), "git": git_info(),
             "jdrkf_source_sha256": package_source_hash(), "jax_devices": [str(d) for d in jax.devices()],
+            "device": device_summary(jax),
             "jax_backend": jax.default_backend(), "XLA_FLAGS": os.environ.get("XLA_FLAGS"),
             "PJRT_NPROC": os.environ.get("PJRT_NPROC"),
             "loadavg": {"start": loadavg()}}
@@ -267,18 +298,34 @@ def main(argv=None) -> int:
         if sys_row is not None:
             ratio = np_row["run_s"] / sys_row["run_s"]
             ratio_cpu = np_row["cpu_s"] / sys_row["cpu_s"]
-            goals.append({"goal": f"jdrkf systematic ≥ {GOAL_RATIO:g}× faster than the vectorized NumPy PF ({dtype_name})",
-                          # a quick run (50 runs, T = 50) is not the goal's setting: not evaluated
-                          "met": None if args.quick else ratio >= GOAL_RATIO,
-                          "ratio": ratio, "ratio_cpu": ratio_cpu, "dtype": dtype_name,
-                          "detail": f"{ratio:.2f}× wall ({sys_row['run_s']:.3g} s vs {np_row['run_s']:.3g} s), "
-                                    f"{ratio_cpu:.2f}× CPU time"
-                                    + (" — quick run, not the goal's setting" if args.quick else "")})
+            # a quick run (50 runs, T = 50) is not the goal's setting, and the goal is the CPU's: not evaluated
+            why = ("quick run, not the goal's setting" if args.quick
+                   else "GPU run: the goal is for --platform cpu" if args.platform != "cpu" else None)
+            goals.append({"goal": f"jdrkf systematic uses ≥ {GOAL_CPU_RATIO:g}× less process CPU time than the vectorized "
+                                  f"NumPy PF ({dtype_name})",
+                          "met": None if why else ratio_cpu >= GOAL_CPU_RATIO,
+                          "ratio_cpu": ratio_cpu, "ratio": ratio, "dtype": dtype_name,
+                          "detail": f"{ratio_cpu:.2f}× (NumPy {np_row['cpu_s']:.3g} CPU s / jdrkf {sys_row['cpu_s']:.3g} CPU s "
+                                    "per call, median)" + (f" — {why}" if why else "")})
+            goals.append({"goal": f"wall time, jdrkf systematic vs the vectorized NumPy PF ({dtype_name})", "met": None,
+                          "informative": True, "ratio": ratio, "dtype": dtype_name,
+                          "detail": f"{ratio:.2f}× ({sys_row['run_s']:.3g} s vs {np_row['run_s']:.3g} s, medians)"})
             lo = max(sys_row["rmse_ci95"][0], np_row["rmse_ci95"][0])
             hi = min(sys_row["rmse_ci95"][1], np_row["rmse_ci95"][1])
             goals.append({"goal": f"jdrkf and NumPy RMSE agree (95% CIs overlap, {dtype_name})", "met": lo <= hi,
                           "dtype": dtype_name,
                           "detail": f"jdrkf {sys_row['rmse_mean']:.3f}, NumPy {np_row['rmse_mean']:.3f}"})
+    if args.platform == "gpu":  # the GPU-scale row: N = 1e4 particles x 1e3 runs (no NumPy counterpart)
+        g_states, g_ys = simulate(args.gpu_runs, args.steps, args.seed)
+        for dtype_name in args.dtype:
+            grow = bench_jdrkf(args, g_ys, g_states, dtype_name, particles=args.gpu_particles,
+                               configs=[("systematic", 0.5)], label="jdrkf GPU scale")[0]
+            rows.append(grow)
+            goals.append({"goal": f"GPU scale: systematic, N = {args.gpu_particles}, {args.gpu_runs} runs, T = {args.steps} "
+                                  f"({dtype_name})", "met": None, "informative": True, "dtype": dtype_name,
+                          "particle_steps_per_s": grow["particle_steps_per_s"],
+                          "detail": f"{grow['particle_steps_per_s']:.3g} particle-steps/s ({grow['run_s']:.3g} s per call, "
+                                    f"compile {grow['compile_s']:.2g} s; RMSE {grow['rmse_mean']:.3f})"})
     meta["loadavg"]["end"] = loadavg()
 
     config = {k: v for k, v in vars(args).items() if k != "out"}
