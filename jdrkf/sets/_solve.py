@@ -1,9 +1,11 @@
 """Worst-case (least-favourable) covariances of DR-MMSE problems: Frank–Wolfe with
-backtracking, a Newton polish on the optimality system, implicit derivatives."""
+backtracking to a loose start, chord (simplified Newton) steps on the optimality system
+written in the gain and the sets' multipliers, implicit derivatives."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -18,15 +20,20 @@ from ._base import AbstractAmbiguitySet, radius
 from ._moment import Moment
 from ._wasserstein import Wasserstein
 
+# Frank–Wolfe stops at this relative gap (or `rtol` if looser); the chord iterations take over.
+_START_RTOL = 1e-5
+_CHORD_MAX_STEPS = 30
+
+
 class WorstCase(eqx.Module):
     """Solution of the decoupled problem (Wang & Ye 2022, eqs. 32–35 and 36–37).
 
     - `state_cov`, `noise_cov`: the worst-case prior `Σx*` and noise `Σv*` covariances.
     - `value`: `Tr(Σx* − i_min Σx*Hᵀ(HΣx*Hᵀ + Σv*)⁻¹HΣx*)`, the trace of the worst-case
       posterior covariance (eq. 41).
-    - `iterations`: Frank–Wolfe iterations; `gap`: the Frank–Wolfe duality gap where it
-      stopped (an upper bound on the optimal value minus the value there; the Newton
-      polish that follows only moves closer to the optimum); `converged`: `gap ≤ rtol · value`.
+    - `iterations`: Frank–Wolfe iterations plus chord steps; `gap`: a duality gap at the
+      solution (an upper bound on the optimal value minus `value`, see `_solve`);
+      `converged`: `gap ≤ rtol · value` with the sets' multiplier equations solved to `rtol`.
     """
 
     state_cov: Float[Array, "n n"]
@@ -50,43 +57,82 @@ class JointWorstCase(eqx.Module):
     converged: Bool[Array, ""]
 
 
-def _decoupled_objective(h, i_min):
-    """`f(Σx, Σv) = Tr Σx − i Tr(K H Σx)`, `K = ΣxHᵀ(HΣxHᵀ + Σv)⁻¹`, and its gradient
-    `((1 − i)I + i(I − KH)ᵀ(I − KH), i KᵀK)` (algorithms.md §A.0, scaled by `i_min`)."""
+class _Objective(NamedTuple):
+    """An MMSE objective `f` whose gradient depends on the blocks `Σ` only through a gain
+    `K` (`n × m`): `∇f(Σ) = directions(gain(Σ))`. The optimality system of `max f` can
+    then be written in `K` and the sets' multipliers (`_reduced_residual`).
+
+    - `fg(Σ) -> (f, ∇f)`: for Frank–Wolfe.
+    - `gain(Σ) -> K`; `directions(K) -> ∇f`.
+    - `factors`: one thin matrix `Y` per block; `gain_residual(K, (Σ Y, …))` vanishes exactly
+      at `K = gain(Σ)` and needs the blocks only through the products `Σ Y`.
+    """
+
+    fg: Callable
+    gain: Callable
+    directions: Callable
+    factors: tuple
+    gain_residual: Callable
+
+
+def _decoupled_objective(h, i_min) -> _Objective:
+    """`f(Σx, Σv) = Tr Σx − i Tr(K H Σx)`, `K = ΣxHᵀ(HΣxHᵀ + Σv)⁻¹`, with the gradient
+    `((1 − i)I + i(I − KH)ᵀ(I − KH), i KᵀK)` (algorithms.md §A.0, scaled by `i = i_min`);
+    gain residual `K(HΣxHᵀ + Σv) − ΣxHᵀ` (factors `Hᵀ`, `I`)."""
+    n, m = h.shape[1], h.shape[0]
+
+    def gain(blocks):
+        sx, sv = blocks
+        return linalg.gauss_jordan_solve(h @ sx @ h.T + sv, h @ sx).T
+
+    def directions(k):
+        # (I − KH)ᵀ(I − KH) = I − KH − (KH)ᵀ + Hᵀ(KᵀK)H: each tangent of K costs O(n²m)
+        kk = linalg.symmetrize(k.T @ k)
+        kh = k @ h
+        dx = jnp.eye(n, dtype=k.dtype) - i_min * (kh + kh.T) + i_min * (h.T @ kk @ h)
+        return linalg.symmetrize(dx), i_min * kk
 
     def fg(blocks):
-        sx, sv = blocks
-        s = linalg.symmetrize(h @ sx @ h.T + sv)
-        k = linalg.psd_solve(s, h @ sx).T
-        eye = jnp.eye(sx.shape[-1], dtype=sx.dtype)
-        a = eye - k @ h
-        value = jnp.trace(sx) - i_min * jnp.trace(k @ h @ sx)
-        dx = (1.0 - i_min) * eye + i_min * (a.T @ a)
-        dv = i_min * (k.T @ k)
-        return value, (linalg.symmetrize(dx), linalg.symmetrize(dv))
+        sx, _ = blocks
+        k = gain(blocks)
+        return jnp.trace(sx) - i_min * jnp.trace(k @ h @ sx), directions(k)
 
-    return fg
+    def gain_residual(k, thin):
+        sxh, sv = thin
+        return k @ linalg.symmetrize(h @ sxh + sv) - sxh
+
+    return _Objective(fg, gain, directions, (h.T, jnp.eye(m, dtype=h.dtype)), gain_residual)
 
 
-def _joint_objective(n):
-    """`f(S) = Tr(S/S_yy)` and its gradient `[I, −K]ᵀ[I, −K]`, `K = S_xy S_yy⁻¹` (§0)."""
+def _joint_objective(n, d, dtype) -> _Objective:
+    """`f(S) = Tr(S/S_yy)` and its gradient `[I, −K]ᵀ[I, −K]`, `K = S_xy S_yy⁻¹` (§0); gain
+    residual `K S_yy − S_xy` (factor `[0, I]ᵀ`, the `y` columns)."""
+
+    def gain(blocks):
+        (s,) = blocks
+        return linalg.gauss_jordan_solve(s[n:, n:], s[:n, n:].T).T
+
+    def directions(k):
+        e = jnp.concatenate([jnp.eye(n, dtype=k.dtype), -k], axis=1)
+        return (linalg.symmetrize(e.T @ e),)
 
     def fg(blocks):
         (s,) = blocks
-        sxx, sxy, syy = s[:n, :n], s[:n, n:], s[n:, n:]
-        k = linalg.psd_solve(syy, sxy.T).T
-        value = jnp.trace(sxx) - jnp.trace(k @ sxy.T)
-        e = jnp.concatenate([jnp.eye(n, dtype=s.dtype), -k], axis=1)
-        return value, (linalg.symmetrize(e.T @ e),)
+        k = gain(blocks)
+        return jnp.trace(s[:n, :n]) - jnp.trace(k @ s[:n, n:].T), directions(k)
 
-    return fg
+    def gain_residual(k, thin):
+        (sy,) = thin
+        return k @ linalg.symmetrize(sy[n:]) - sy[:n]
+
+    return _Objective(fg, gain, directions, (jnp.eye(d, dtype=dtype)[:, n:],), gain_residual)
 
 
 def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
     """Frank–Wolfe with backtracking step sizes (algorithms.md §A.2), from the nominals.
 
-    Returns the last iterate, the iteration count, the oracles' multipliers at that
-    iterate and its duality gap (each oracle is traced once, inside the loop).
+    Returns the last iterate, the iteration count and the oracles' multipliers at that
+    iterate (each oracle is traced once, inside the loop).
     """
     dtype = nominals[0].dtype
 
@@ -94,7 +140,7 @@ def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
         return (~c[3]) & (c[1] < max_iter)
 
     def body(c):
-        s, k, beta, _, _, _ = c
+        s, k, beta, _, _ = c
         value, grads = fg(s)
         lmos, mults = zip(*(st.oracle(g, nom) for st, g, nom in zip(sets, grads, nominals, strict=True)), strict=True)
         p = tuple(lm - si for lm, si in zip(lmos, s, strict=True))
@@ -118,13 +164,47 @@ def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
         beta, _, _ = lax.while_loop(bt_cond, bt_body, (beta, done, 0))
         eta = jnp.where(done, 0.0, jnp.minimum(gap / (beta * pn_safe), 1.0))
         s = tuple(linalg.symmetrize(si + eta * pi) for si, pi in zip(s, p, strict=True))
-        return s, k + jnp.where(done, 0, 1), beta, done, tuple(mults), jnp.maximum(gap, 0.0)
+        return s, k + jnp.where(done, 0, 1), beta, done, tuple(mults)
 
     beta0 = jnp.ones((), dtype) / sum(jnp.trace(nom) for nom in nominals)
     zero = jnp.zeros((), dtype)
-    init = (tuple(nominals), jnp.zeros((), int), beta0, jnp.zeros((), bool), tuple(zero for _ in nominals), zero)
-    s, k, _, _, mults, gap = lax.while_loop(cond, body, init)
-    return s, k, mults, gap
+    init = (tuple(nominals), jnp.zeros((), int), beta0, jnp.zeros((), bool), tuple(zero for _ in nominals))
+    s, k, _, _, mults = lax.while_loop(cond, body, init)
+    return s, k, mults
+
+
+def _oracle(st, multiplier, direction, nominal):
+    """The set's oracle `Σ(s, D)` as a smooth function of its multiplier `s` and the
+    direction `D`, and the multiplier's equation: every set's `residual` is
+    `(Σ − Σ(s, D), equation)` with an equation independent of `Σ`."""
+    r, q = st.residual(jnp.zeros_like(nominal), multiplier, direction, nominal)
+    return -r, q
+
+
+def _reduced_residual(obj: _Objective, sets, nominals):
+    """Optimality system of `max f` in `x = (K, s₁, s₂, …)`: `Σⱼ = Σⱼ(sⱼ, Dⱼ(K))` are the
+    oracles at the directions `D(K) = obj.directions(K)`, and at the optimum
+    `K = gain(Σ)` and each multiplier solves its set's equation. It has `n·m + #sets`
+    unknowns (the system in the blocks has `n² + m² + 2`)."""
+
+    def residual(x):
+        k, mults = x
+        oracles = [_oracle(*a) for a in zip(sets, mults, obj.directions(k), nominals, strict=True)]
+        thin = tuple(sig @ y for (sig, _), y in zip(oracles, obj.factors, strict=True))
+        return obj.gain_residual(k, thin), tuple(q for _, q in oracles)
+
+    return residual
+
+
+def _blocks(obj: _Objective, sets, nominals, x):
+    """The worst-case blocks `Σⱼ(sⱼ, Dⱼ(K))` at `x = (K, s)`. Zero-radius blocks are the
+    nominals exactly, with the derivatives of `Σⱼ(sⱼ, Dⱼ(K))` (e.g. in the radius)."""
+    k, mults = x
+    blocks = []
+    for st, mu, d, nom in zip(sets, mults, obj.directions(k), nominals, strict=True):
+        sig = linalg.symmetrize(_oracle(st, mu, d, nom)[0])
+        blocks.append(jnp.where(st.is_nominal(), lax.stop_gradient(nom) + (sig - lax.stop_gradient(sig)), sig))
+    return tuple(blocks)
 
 
 def _dense_solve(g, y):
@@ -133,60 +213,137 @@ def _dense_solve(g, y):
     return unravel(jnp.linalg.solve(jac, flat_y))
 
 
-def _solve(make_fg: Callable, params, sets: tuple, nominals: tuple, rtol, max_iter):
+def _newton_chord(residual, x0, jacobian, max_steps):
+    """Chord (simplified Newton) iterations `x ← x − J(x₀)⁻¹ r(x)` with one dense Jacobian
+    (`jacobian(x₀)`, or `jax.jacfwd` of the flattened residual when `None`), LU-factorized
+    once. From a Frank–Wolfe start the contraction factor is about the start's error, so
+    a few steps reach round-off. A step is taken only if it decreases the residual norm,
+    and the loop stops once a step decreases it by less than half. Returns the last
+    accepted iterate, its residual and the number of steps taken."""
+    flat0, unravel = ravel_pytree(x0)
+
+    def res(v):
+        return ravel_pytree(residual(unravel(v)))[0]
+
+    jac = jax.jacfwd(res)(flat0) if jacobian is None else jacobian(x0)
+    lu = jax.scipy.linalg.lu_factor(jac)
+
+    def cond(c):
+        return c[3] & (c[2] < max_steps)
+
+    def body(c):
+        v, r, k, _ = c
+        v_new = v - jax.scipy.linalg.lu_solve(lu, r)
+        r_new = res(v_new)
+        norm, norm_new = jnp.linalg.norm(r), jnp.linalg.norm(r_new)
+        better = jnp.all(jnp.isfinite(r_new)) & (norm_new < norm)
+        keep = lambda a, b: jnp.where(better, a, b)  # noqa: E731
+        return keep(v_new, v), keep(r_new, r), k + better.astype(k.dtype), better & (norm_new < 0.5 * norm)
+
+    v, r, k, _ = lax.while_loop(cond, body, (flat0, res(flat0), jnp.zeros((), int), jnp.ones((), bool)))
+    return unravel(v), unravel(r), k
+
+
+def _wasserstein_jacobian(h, i_min, sets, nominals):
+    """Closed-form Jacobian of `_reduced_residual` for the decoupled objective with two
+    Wasserstein balls (`jax.jacfwd` pushes `n·m` tangents through `O(n²m)` products each;
+    this is `O(n²m²)`), flattened as `ravel_pytree` orders `(K, (s_x, s_v))`.
+
+    With `A = I − KH`, `dD_x = −i(HᵀdKᵀA + AᵀdKH)`, `dD_v = i(dKᵀK + KᵀdK)` and, per ball,
+    `dΣ = θ s (T dD Σ + Σ dD T) + θ ds (TDΣ + ΣDT)` (`Σ = TΣ̂T`, `dT = θT(ds D + s dD)T`),
+    the gain residual `r = KS − ΣxHᵀ` (`S = HΣxHᵀ + Σv`) has
+    `dr = dK S − A dΣx Hᵀ + K dΣv`, a sum of terms `X dK Y` (entry `X_ak Y_lb` of column
+    `dK = e_k e_lᵀ`) and `X dKᵀ Y` (`X_al Y_kb`). The radius equation
+    `q = s² Tr(Σ̂P²) − 1` (`P = DT`; `T = I + θsP`, so `dP = T dD T + θ ds P²`) has
+    `dq = s²⟨TQT, dD⟩ + (2s Tr(Σ̂P²) + 2θs² Tr(Σ̂P³)) ds`, `Q = PΣ̂ + Σ̂P`; an inactive
+    ball's equation is `s − 1`.
+    """
+
+    def jacobian(x):
+        k, mults = x
+        n, m = k.shape
+        a = jnp.eye(n, dtype=k.dtype) - k @ h
+        ds = _decoupled_objective(h, i_min).directions(k)
+        parts = []
+        for st, s, d, nom in zip(sets, mults, ds, nominals, strict=True):
+            rho = st.theta.astype(nom.dtype)
+            t = linalg.psd_inv_gj(jnp.eye(d.shape[-1], dtype=d.dtype) - rho * s * d)
+            sig = linalg.symmetrize(t @ nom @ t)
+            p = linalg.symmetrize(t @ d)
+            p2 = p @ p
+            q_mat = p @ nom
+            slope = 2.0 * s * jnp.sum(nom * p2) + 2.0 * rho * s * s * jnp.sum((nom @ p) * p2)
+            active = jnp.trace(d) > 0
+            tds = t @ d @ sig
+            parts.append((rho * s, t, sig, s * s * (t @ (q_mat + q_mat.T) @ t), rho * (tds + tds.T), slope, active))
+        (cx, tx, sx, gx, dsx, slope_x, act_x), (cv, tv, sv, gv, dsv, slope_v, act_v) = parts
+
+        def dk(x_, y_):  # X dK Y
+            return jnp.einsum("ak,lb->abkl", x_, y_)
+
+        def dkt(x_, y_):  # X dKᵀ Y
+            return jnp.einsum("al,kb->abkl", x_, y_)
+
+        u, w = a @ tx @ h.T, a @ sx @ h.T
+        kt, ks = k @ tv, k @ sv
+        s_mat = linalg.symmetrize(h @ sx @ h.T + sv)
+        jkk = (
+            dk(jnp.eye(n, dtype=k.dtype), s_mat)
+            + i_min * cx * (dkt(u, w) + dkt(w, u) + dk(a @ tx @ a.T, h @ sx @ h.T) + dk(a @ sx @ a.T, h @ tx @ h.T))
+            + i_min * cv * (dkt(kt, ks) + dkt(ks, kt) + dk(kt @ k.T, sv) + dk(ks @ k.T, tv))
+        ).reshape(n * m, n * m)
+        cols = jnp.stack([(-a @ dsx @ h.T).ravel(), (k @ dsv).ravel()], axis=1)
+        rows = jnp.stack([jnp.where(act_x, -2.0 * i_min * (a @ gx @ h.T), 0.0).ravel(), jnp.where(act_v, 2.0 * i_min * (k @ gv), 0.0).ravel()])
+        corner = jnp.diag(jnp.stack([jnp.where(act_x, slope_x, 1.0), jnp.where(act_v, slope_v, 1.0)]))
+        return jnp.block([[jkk, cols], [rows, corner]])
+
+    return jacobian
+
+
+def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol, max_iter, make_jacobian=None):
     """Worst-case blocks of `max f` over the product of `sets`, with implicit derivatives.
 
     The optimum is the fixed point `Σ = LMO(∇f(Σ))` of each block (algorithms.md §A.3),
-    written as the smooth system `set.residual(Σ, multiplier, ∇f(Σ), nominal) = 0`.
-    Forward: Frank–Wolfe to a relative gap `rtol`, then a Newton step on that system
-    (quadratic convergence, so derivatives see a tight solution). Derivatives: the
-    implicit function theorem on the same system (`lax.custom_root`).
+    written as the smooth system `_reduced_residual` in the gain `K` and the multipliers.
+    Forward: Frank–Wolfe to a relative gap `max(rtol, _START_RTOL)`, then chord steps on
+    that system to round-off (`_newton_chord`; the Jacobian in closed form for two
+    Wasserstein balls, `make_jacobian`, else `jax.jacfwd`). Derivatives: the implicit function theorem on the same system
+    (`lax.custom_root`); the blocks are smooth functions of its solution.
+
+    `gap` is the duality gap `Σⱼ⟨Dⱼ(K), Σⱼ⟩ − f(Σ) ≥ max f − f(Σ)` at the solution: `Σ(K)`
+    maximizes `⟨D(K), ·⟩` over the sets, and `f(Σ') ≤ ⟨D(K), Σ'⟩` for every `Σ'` (`f` is the
+    minimum over gains of that linear function). `converged`: `gap ≤ rtol · f` and the
+    multipliers' equations solved to `rtol` (so that `Σ(K)` is that maximizer).
     """
-
-    def residual_of(fg, sets_, nominals_):
-        def residual(x):
-            s, mult = x
-            _, grads = fg(s)
-            out = [st.residual(si, mi, g, nom) for st, si, mi, g, nom in zip(sets_, s, mult, grads, nominals_, strict=True)]
-            return tuple(o[0] for o in out), tuple(o[1] for o in out)
-
-        return residual
+    dtype = nominals[0].dtype
 
     def solve(_, guess):
         del guess
         p_, sets_, noms_ = jax.tree.map(lax.stop_gradient, (params, sets, nominals))
-        fg = make_fg(*p_)
-        s, iters, mult, gap = _frank_wolfe(fg, sets_, noms_, rtol, max_iter)
-        res_fn = residual_of(fg, sets_, noms_)
-        x = (s, mult)
-
-        def newton(x):
-            r = res_fn(x)
-            dx = _dense_solve(lambda v: jax.jvp(res_fn, (x,), (v,))[1], r)
-            x_new = jax.tree.map(lambda a, b: a - b, x, dx)
-            better = ravel_pytree(res_fn(x_new))[0]
-            better = jnp.all(jnp.isfinite(better)) & (jnp.linalg.norm(better) < jnp.linalg.norm(ravel_pytree(r)[0]))
-            return jax.tree.map(lambda a, b: jnp.where(better, a, b), x_new, x)
-
-        s, mult = newton(x)  # from a gap of rtol = eps^(2/3), one step reaches round-off
-        # Zero-radius blocks are returned exactly (the polish may leave round-off there).
-        s = tuple(jnp.where(st.is_nominal(), nom, linalg.symmetrize(si)) for st, si, nom in zip(sets_, s, noms_, strict=True))
-        value, _ = fg(s)
-        converged = gap <= rtol * jnp.maximum(jnp.abs(value), jnp.finfo(value.dtype).tiny)
+        obj = make_objective(*p_)
+        s, iters, mults = _frank_wolfe(obj.fg, sets_, noms_, max(rtol, _START_RTOL), max_iter)
+        jacobian = None if make_jacobian is None else make_jacobian(*p_, sets_, noms_)
+        x, (_, equations), steps = _newton_chord(_reduced_residual(obj, sets_, noms_), (obj.gain(s), mults), jacobian, _CHORD_MAX_STEPS)
+        worst = jnp.max(jnp.abs(jnp.stack(equations)))
         # custom_root needs float auxiliary outputs (integer tangents are rejected).
-        return (s, mult), (iters.astype(gap.dtype), gap, converged.astype(gap.dtype))
+        return x, ((iters + steps).astype(dtype), worst)
 
-    guess = (tuple(nominals), tuple(jnp.zeros((), nominals[0].dtype) for _ in nominals))
-    (s, _), (iters, gap, converged) = lax.custom_root(
-        residual_of(make_fg(*params), sets, nominals), guess, solve, _dense_solve, has_aux=True
-    )
-    value, _ = make_fg(*params)(s)
-    return s, value, iters.astype(int), gap, converged > 0
+    obj = make_objective(*params)
+    k0 = jax.eval_shape(obj.gain, nominals)
+    guess = (jnp.zeros(k0.shape, dtype), tuple(jnp.zeros((), dtype) for _ in nominals))
+    x, (iters, worst) = lax.custom_root(_reduced_residual(obj, sets, nominals), guess, solve, _dense_solve, has_aux=True)
+    blocks = _blocks(obj, sets, nominals, x)
+    value, _ = obj.fg(blocks)
+    bound = sum(jnp.vdot(d, b) for d, b in zip(obj.directions(x[0]), blocks, strict=True))
+    gap = lax.stop_gradient(jnp.maximum(bound - value, 0.0))
+    tol = rtol * jnp.maximum(jnp.abs(value), jnp.finfo(dtype).tiny)
+    converged = (worst <= rtol) & (gap <= tol)
+    return blocks, value, lax.stop_gradient(iters).astype(int), gap, converged
 
 
 def default_rtol(dtype) -> float:
-    """Default relative duality-gap tolerance of Frank–Wolfe: `eps^(2/3)` (≈4e-11 in
-    float64, 2e-5 in float32); the Newton polish then reaches machine precision."""
+    """Default relative duality-gap tolerance of the solvers: `eps^(2/3)` (≈4e-11 in
+    float64, 2e-5 in float32); the chord steps usually reach machine precision."""
     return float(jnp.finfo(dtype).eps) ** (2.0 / 3.0)
 
 
@@ -215,9 +372,10 @@ def worst_case(
     `Σv ∈ noise_set(noise_cov)` (Wang & Ye 2022, eq. 32 with eq. 33, 37 or the KL balls
     18/21; `None` = the nominal only). Moment sets are closed form (Theorem 5); otherwise
     Frank–Wolfe with backtracking on the product of the sets, with the linear oracle of
-    each set in closed form (algorithms.md §A.1–A.2, §B.3), polished by a Newton step on
-    the optimality system, which also gives the derivatives (implicit function theorem)
-    with respect to radii, `prior_cov`, `H`, `noise_cov` and `i_min`.
+    each set in closed form (algorithms.md §A.1–A.2, §B.3), to a loose start, then chord
+    steps on the optimality system in the gain and the multipliers, which also gives the
+    derivatives (implicit function theorem) with respect to radii, `prior_cov`, `H`,
+    `noise_cov` and `i_min`.
     """
     state_set, noise_set = _as_set("state_set", state_set), _as_set("noise_set", noise_set)
     prior_cov = as_float_array("prior_cov", prior_cov, (2,))
@@ -242,10 +400,12 @@ def _worst_case(state_set, noise_set, prior_cov, H, noise_cov, i_min, rtol, max_
     sets, noms = (state_set, noise_set), (prior_cov, noise_cov)
     if all(isinstance(st, Moment) for st in sets):
         s = tuple(st.worst_case(nom) for st, nom in zip(sets, noms, strict=True))
-        value, _ = _decoupled_objective(H, i_min)(s)
+        value, _ = _decoupled_objective(H, i_min).fg(s)
         zero = jnp.zeros((), prior_cov.dtype)
         return WorstCase(s[0], s[1], value, jnp.zeros((), int), zero, jnp.ones((), bool))
-    s, value, iters, gap, conv = _solve(_decoupled_objective, (H, i_min), sets, noms, rtol, max_iter)
+    both_wasserstein = all(isinstance(st, Wasserstein) for st in sets)
+    make_jacobian = _wasserstein_jacobian if both_wasserstein else None
+    s, value, iters, gap, conv = _solve(_decoupled_objective, (H, i_min), sets, noms, rtol, max_iter, make_jacobian)
     return WorstCase(s[0], s[1], value, iters, gap, conv)
 
 
@@ -276,9 +436,9 @@ def worst_case_joint(
 def _worst_case_joint(joint_set, cov, n, rtol, max_iter):
     if isinstance(joint_set, Moment):
         s = joint_set.worst_case(cov)
-        value, _ = _joint_objective(n)((s,))
+        value, _ = _joint_objective(n, cov.shape[0], cov.dtype).fg((s,))
         return JointWorstCase(s, value, jnp.zeros((), int), jnp.zeros((), cov.dtype), jnp.ones((), bool))
-    s, value, iters, gap, conv = _solve(lambda: _joint_objective(n), (), (joint_set,), (cov,), rtol, max_iter)
+    s, value, iters, gap, conv = _solve(lambda: _joint_objective(n, cov.shape[0], cov.dtype), (), (joint_set,), (cov,), rtol, max_iter)
     return JointWorstCase(s[0], value, iters, gap, conv)
 
 
