@@ -28,7 +28,6 @@ __all__ = [
     "psd_solve",
     "psd_inv",
     "gauss_jordan_solve",
-    "psd_inv_gj",
     "psd_solve_fwd",
     "psd_logdet",
     "psd_sqrt",
@@ -129,14 +128,15 @@ def psd_solve(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n ..."]) -> Float
 @jax.custom_jvp
 def psd_inv(a: Float[ArrayLike, "n n"]) -> Float[Array, "n n"]:
     """Inverse of a symmetric positive-definite matrix, for solvers that need it as a
-    matrix (e.g. `T = (I − θsD)⁻¹`): `psd_solve(a, I)`, symmetrized.
+    matrix (e.g. `T = (I − θsD)⁻¹`): `gauss_jordan_solve(a, I)` (unrolled up to
+    `UNROLL_MAX`, else the Cholesky solve), symmetrized.
 
     Derivative `−X dA X` (`X = a⁻¹`, `dA` symmetrized): matrix products only, so a forward-mode Jacobian
     over many tangents is a few batched products rather than one triangular solve
     per tangent. NaNs when `a` is not numerically positive definite.
     """
     a = jnp.asarray(a)
-    return symmetrize(psd_solve(a, jnp.eye(a.shape[-1], dtype=a.dtype)))
+    return symmetrize(gauss_jordan_solve(a, jnp.eye(a.shape[-1], dtype=a.dtype)))
 
 
 @psd_inv.defjvp
@@ -174,21 +174,6 @@ def gauss_jordan_solve(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n ..."])
     vec = b.ndim == 1
     x = _unrolled_gauss_jordan(symmetrize(a), b[:, None] if vec else b)
     return x[:, 0] if vec else x
-
-
-@jax.custom_jvp
-def psd_inv_gj(a: Float[ArrayLike, "n n"]) -> Float[Array, "n n"]:
-    """`psd_inv` computed by `gauss_jordan_solve(a, I)` (fewer kernels for small `a`), with
-    the same derivative `−X dA X`."""
-    a = jnp.asarray(a)
-    return symmetrize(gauss_jordan_solve(a, jnp.eye(a.shape[-1], dtype=a.dtype)))
-
-
-@psd_inv_gj.defjvp
-def _psd_inv_gj_jvp(primals, tangents):
-    (a,), (da,) = primals, tangents
-    x = psd_inv_gj(a)
-    return x, -x @ symmetrize(da) @ x
 
 
 @jax.custom_jvp

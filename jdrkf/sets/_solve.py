@@ -267,7 +267,7 @@ def _wasserstein_jacobian(h, i_min, sets, nominals):
         parts = []
         for st, s, d, nom in zip(sets, mults, ds, nominals, strict=True):
             rho = st.theta.astype(nom.dtype)
-            t = linalg.psd_inv_gj(jnp.eye(d.shape[-1], dtype=d.dtype) - rho * s * d)
+            t = linalg.psd_inv(jnp.eye(d.shape[-1], dtype=d.dtype) - rho * s * d)
             sig = linalg.symmetrize(t @ nom @ t)
             p = linalg.symmetrize(t @ d)
             p2 = p @ p

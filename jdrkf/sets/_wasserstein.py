@@ -76,10 +76,10 @@ class Wasserstein(AbstractAmbiguitySet):
 
 def _oracle_residual(rho, cov, s, direction, nominal):
     """The oracle's optimality system `(Σ − TΣ̂T, s² Tr(Σ̂(DT)²) − 1)` (or `s − 1` for an
-    inactive set, `Tr D = 0`) and `T = (I − θsD)⁻¹` (`linalg.psd_inv_gj`: its derivative is
+    inactive set, `Tr D = 0`) and `T = (I − θsD)⁻¹` (`linalg.psd_inv`: its derivative is
     products, so Newton and implicit-derivative Jacobians batch)."""
     eye = jnp.eye(nominal.shape[-1], dtype=nominal.dtype)
-    t = linalg.psd_inv_gj(eye - rho * s * direction)  # I − θsD ≻ 0 in the bracket
+    t = linalg.psd_inv(eye - rho * s * direction)  # I − θsD ≻ 0 in the bracket
     dt = direction @ t
     q = s * s * jnp.trace(nominal @ dt @ dt) - 1.0
     active = jnp.trace(direction) > 0
