@@ -261,9 +261,12 @@ class AbstractFilter(eqx.Module):
         keys = None if key is None else jax.random.split(key, num_steps)
         stacked = set(self.outputs) - {"marginal_loglik"}
         loglik0 = jnp.zeros((), prior.mean.dtype) if "marginal_loglik" in self.outputs else None
+        # The last filtered mean (for the finiteness check below) comes from the stacked means
+        # when they are requested; otherwise it is carried (a copy per step).
+        mean0 = None if "filtered_means" in stacked else prior.mean
 
         def body(carry, xs):
-            state, result, _, loglik = carry
+            state, result, last_mean, loglik = carry
             t, y, u, k, o = xs
             state, out = self.step(model, state, y, t, u, k, observed=o)
             result = RESULTS.where(result == RESULTS.successful, out.result, result)
@@ -276,11 +279,14 @@ class AbstractFilter(eqx.Module):
                 "info": out.info,
             }
             loglik = None if loglik is None else loglik + out.loglik
-            return (state, result, out.filtered.mean, loglik), {name: fields[name] for name in stacked}
+            last_mean = None if last_mean is None else out.filtered.mean
+            return (state, result, last_mean, loglik), {name: fields[name] for name in stacked}
 
         xs = (jnp.arange(num_steps), ys, inputs, keys, observed)
-        carry0 = (state0, RESULTS.successful, prior.mean, loglik0)
+        carry0 = (state0, RESULTS.successful, mean0, loglik0)
         (_, result, last_mean, loglik), outs = lax.scan(body, carry0, xs)
+        if last_mean is None:
+            last_mean = outs["filtered_means"][-1] if num_steps else prior.mean
         # A non-finite mean persists through the (linear in the mean) recursions, so checking
         # the last one once replaces a per-step, per-run check.
         finite = jnp.all(jnp.isfinite(last_mean))
