@@ -197,3 +197,21 @@ def test_gauss_jordan_solve_matches_numpy(rng, d):
     indefinite = np.eye(d)
     indefinite[-1, -1] = -1.0
     assert np.all(np.isnan(linalg.gauss_jordan_solve(indefinite, b_vec)))
+
+
+def test_gauss_jordan_solve_jit_vmap_grad(rng):
+    # jit x vmap x grad of a scalar of the solution, against central differences of NumPy's solve.
+    d = 4
+    a = np.stack([_spd(rng, d) for _ in range(3)])
+    b = rng.normal(size=(3, d))
+    loss = jax.jit(jax.grad(lambda a, b: jnp.sum(jax.vmap(linalg.gauss_jordan_solve)(a, b) ** 2), argnums=(0, 1)))
+    ga, gb = loss(a, b)
+    ref = lambda a, b: np.sum(np.linalg.solve(a, b[..., None]) ** 2)  # noqa: E731
+    eps = 1e-6
+    da = rng.normal(size=a.shape)
+    da = da + np.swapaxes(da, -1, -2)  # `a` is symmetric by contract: symmetric directions only
+    db = rng.normal(size=b.shape)
+    fd_a = (ref(a + eps * da, b) - ref(a - eps * da, b)) / (2 * eps)
+    fd_b = (ref(a, b + eps * db) - ref(a, b - eps * db)) / (2 * eps)
+    np.testing.assert_allclose(np.sum(np.asarray(ga) * da), fd_a, rtol=1e-6)
+    np.testing.assert_allclose(np.sum(np.asarray(gb) * db), fd_b, rtol=1e-6)

@@ -77,7 +77,7 @@ class _Objective(NamedTuple):
 
 def _decoupled_objective(h, i_min) -> _Objective:
     """`f(Σx, Σv) = Tr Σx − i Tr(K H Σx)`, `K = ΣxHᵀ(HΣxHᵀ + Σv)⁻¹`, with the gradient
-    `((1 − i)I + i(I − KH)ᵀ(I − KH), i KᵀK)` (algorithms.md §A.0, scaled by `i = i_min`);
+    `((1 − i)I + i(I − KH)ᵀ(I − KH), i KᵀK)` (the gradient of Wang & Ye's eq. 41, scaled by `i = i_min`);
     gain residual `K(HΣxHᵀ + Σv) − ΣxHᵀ` (factors `Hᵀ`, `I`)."""
     n, m = h.shape[1], h.shape[0]
 
@@ -105,7 +105,7 @@ def _decoupled_objective(h, i_min) -> _Objective:
 
 
 def _joint_objective(n, d, dtype) -> _Objective:
-    """`f(S) = Tr(S/S_yy)` and its gradient `[I, −K]ᵀ[I, −K]`, `K = S_xy S_yy⁻¹` (§0); gain
+    """`f(S) = Tr(S/S_yy)` and its gradient `[I, −K]ᵀ[I, −K]`, `K = S_xy S_yy⁻¹`; gain
     residual `K S_yy − S_xy` (factor `[0, I]ᵀ`, the `y` columns)."""
 
     def gain(blocks):
@@ -129,7 +129,7 @@ def _joint_objective(n, d, dtype) -> _Objective:
 
 
 def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
-    """Frank–Wolfe with backtracking step sizes (algorithms.md §A.2), from the nominals.
+    """Frank–Wolfe with backtracking step sizes (Armijo-type line search), from the nominals.
 
     Returns the last iterate, the iteration count and the oracles' multipliers at that
     iterate (each oracle is traced once, inside the loop).
@@ -303,7 +303,7 @@ def _wasserstein_jacobian(h, i_min, sets, nominals):
 def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol, max_iter, make_jacobian=None):
     """Worst-case blocks of `max f` over the product of `sets`, with implicit derivatives.
 
-    The optimum is the fixed point `Σ = LMO(∇f(Σ))` of each block (algorithms.md §A.3),
+    The optimum is the fixed point `Σ = LMO(∇f(Σ))` of each block (first-order optimality of the concave maximization),
     written as the smooth system `_reduced_residual` in the gain `K` and the multipliers.
     Forward: Frank–Wolfe to a relative gap `max(rtol, _START_RTOL)`, then chord steps on
     that system to round-off (`_newton_chord`; the Jacobian in closed form for two
@@ -372,7 +372,7 @@ def worst_case(
     `Σv ∈ noise_set(noise_cov)` (Wang & Ye 2022, eq. 32 with eq. 33, 37 or the KL balls
     18/21; `None` = the nominal only). Moment sets are closed form (Theorem 5); otherwise
     Frank–Wolfe with backtracking on the product of the sets, with the linear oracle of
-    each set in closed form (algorithms.md §A.1–A.2, §B.3), to a loose start, then chord
+    each set in closed form (Wang & Ye, eqs. 34–36; the KL ball's dual), to a loose start, then chord
     steps on the optimality system in the gain and the multipliers, which also gives the
     derivatives (implicit function theorem) with respect to radii, `prior_cov`, `H`,
     `noise_cov` and `i_min`.
