@@ -1,6 +1,6 @@
 """Closed-loop simulation: true system, state estimator and controller in one `lax.scan`.
 
-Seed 004 (Jang, Hakobyan, Yang) compares estimators inside an LQR tracking loop, where
+Jang, Hakobyan & Yang (2025) compare estimators inside an LQR tracking loop, where
 the estimate feeds back into the trajectory. `closed_loop` runs the true system, any
 `jdrkf` filter and a controller together, so that Monte Carlo runs are a `jax.vmap`
 over keys and the closed-loop cost can be differentiated with respect to the filter's
@@ -106,7 +106,7 @@ class ClosedLoopResult(eqx.Module):
 
     def cost(self, Q: Float[ArrayLike, "n n"], R: Float[ArrayLike, "p p"]) -> Float[Array, "..."]:
         """Quadratic tracking cost `Σ_{t=0}^{T} (x_t − r_t)ᵀQ(x_t − r_t) + u_tᵀ R u_t`
-        (seed 004's `J`, which includes `u_T`). One value per run."""
+        (the `J` of Jang, Hakobyan & Yang 2025, which includes `u_T`). One value per run."""
         n, p = self.states.shape[-1], self.controls.shape[-1]
         Q = as_float_array("Q", Q, (2,))
         check_shape("Q", Q, (n, n), f"since the state dimension is {n}")
@@ -120,7 +120,7 @@ class ClosedLoopResult(eqx.Module):
         )
 
     def mse(self) -> Float[Array, "..."]:
-        """Mean over `t = 0..T` of `‖x̂_t − x_t‖²` (seed 004's "average MSE"). One value per run."""
+        """Mean over `t = 0..T` of `‖x̂_t − x_t‖²` (Jang et al.'s "average MSE"). One value per run."""
         return jnp.mean(jnp.sum((self.estimates - self.states) ** 2, axis=-1), axis=-1)
 
 
@@ -170,7 +170,7 @@ def closed_loop(
 ) -> ClosedLoopResult:
     r"""Simulate a true system driven by a controller acting on a filter's estimates.
 
-    Timeline (seed 004's `main.py`), with `T = reference.shape[0] − 1`:
+    Timeline (the `main.py` of Jang, Hakobyan & Yang's code), with `T = reference.shape[0] − 1`:
     `x_0 ~ initial_state`, `y_0 = H x_0 + v_0`; `x̂_0` is the prior mean updated with
     `y_0` (or the prior mean if `measure_initial=False`); for `t = 0..T−1`:
     `u_t = controller(x̂_t, r_t)`, `x_{t+1} = F_t x_t + B_t u_t + G_t w_t`,
@@ -193,7 +193,7 @@ def closed_loop(
       `jdrkf.UQuadraticNoise`); default `prior`.
     - `process_noise`, `measurement_noise`: true laws of `w` and `v`; default Gaussian
       with `true_model`'s means and covariances.
-    - `measure_initial`: apply the update on `y_0` (seed 004 does, for all filters but
+    - `measure_initial`: apply the update on `y_0` (Jang, Hakobyan & Yang do, for all filters but
       the risk-sensitive one).
 
     **The update on `y_0`** has no prediction before it. It is one `filter.step` on a copy

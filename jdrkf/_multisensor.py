@@ -1,4 +1,4 @@
-"""Multi-sensor linear models with (possibly) correlated sensor noises (Chen et al. 2025, seed 002)."""
+"""Multi-sensor linear models with (possibly) correlated sensor noises (Chen et al. 2025)."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Each law draws one vector per call, `sample(key, t)`, and can split it as
 `sample_parts(key, t) -> (nominal, outlier)` with `sample = nominal + outlier`:
 `nominal` is what the outlier-free law would have produced with the same random
-numbers. Seed 000's clairvoyant TMKF filters the outlier-free measurements
+numbers. Wang & Ye's (2022) clairvoyant TMKF filters the outlier-free measurements
 `H x + nominal`.
 """
 
@@ -16,10 +16,11 @@ from typing import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from . import linalg
-from ._validation import as_float_array, check_covariance, check_shape, is_concrete
+from ._validation import as_float_array, check_covariance, check_shape, is_concrete, psd_rtol
 
 
 class AbstractNoise(eqx.Module):
@@ -51,6 +52,24 @@ class AbstractNoise(eqx.Module):
 
     def check_horizon(self, num_steps: int) -> None:
         """Eager check that a time-varying law covers `num_steps` steps (no-op here)."""
+
+
+def sampling_root(cov: Float[Array, "d d"]) -> Float[Array, "d d"]:
+    """Symmetric square root `cov^½` used to draw `N(μ, cov) = μ + cov^½ z`.
+
+    Exact for any positive-semidefinite `cov`, singular ones included (the principal
+    root of `jdrkf.linalg.psd_sqrt`, which zeroes only round-off negative eigenvalues).
+    An indefinite `cov`, `λ_min < −psd_rtol · max|λ|` (the tolerance of the eager
+    covariance checks), has no square root: the result is then all NaN, so that draws
+    from it are NaN rather than draws from a silently clipped covariance. Concrete
+    covariances are rejected earlier, when the law or model is built; this guards
+    covariances that arrive traced.
+    """
+    cov = linalg.symmetrize(cov)
+    lam = lax.stop_gradient(jnp.linalg.eigvalsh(cov))
+    top = jnp.maximum(jnp.max(jnp.abs(lam)), jnp.finfo(cov.dtype).tiny)
+    psd = lam[0] >= -psd_rtol(cov.dtype, cov.shape[-1]) * top
+    return jnp.where(psd, linalg.psd_sqrt(cov), jnp.nan)
 
 
 def _cov_and_mean(cov, mean):
@@ -103,7 +122,7 @@ class _NominalGaussianNoise(AbstractNoise):
         return self._cov
 
     def _nominal(self, key):
-        return self._mean + linalg.psd_sqrt(self._cov) @ jax.random.normal(key, (self.dim,), self._cov.dtype)
+        return self._mean + sampling_root(self._cov) @ jax.random.normal(key, (self.dim,), self._cov.dtype)
 
 
 class GaussianNoise(_NominalGaussianNoise):
@@ -159,7 +178,7 @@ class MixtureNoise(_NominalGaussianNoise):
 
 class OutlierNoise(_NominalGaussianNoise):
     """`N(μ, R)` plus, independently in each channel with probability `p`, an outlier
-    `±magnitude` (sign equiprobable): seed 000's outlier model (`magnitude = 100`)."""
+    `±magnitude` (sign equiprobable): the outliers of Wang & Ye (2022), Sec. VII (`magnitude = 100`)."""
 
     p: Float[Array, ""]
     magnitude: Float[Array, ""]
@@ -219,7 +238,7 @@ class StudentTNoise(_NominalGaussianNoise):
 
 
 class UQuadraticNoise(AbstractNoise):
-    """Independent U-quadratic components on the box `[low, high]` (seed 004):
+    """Independent U-quadratic components on the box `[low, high]` (Jang, Hakobyan & Yang 2025, Sec. 5.2):
     density `α (x − β)²`, `α = 12/(b − a)³`, `β = (a + b)/2`; variance `3 (b − a)²/20`.
     Sampled by the inverse CDF `x = β + cbrt(3u/α − (β − a)³)`."""
 
@@ -323,7 +342,7 @@ class ScaledNoise(AbstractNoise):
 
 class UniformPerturbation(eqx.Module):
     """Random additive perturbation of the transition matrix, `F_t = F + α Δ_t D`
-    with `Δ_t ~ U[−1, 1]` i.i.d. per step (seed 000: `D = [[0, 1], [0, 0]]`)."""
+    with `Δ_t ~ U[−1, 1]` i.i.d. per step (Wang & Ye 2022, Sec. VII: `D = [[0, 1], [0, 0]]`)."""
 
     direction: Float[Array, "n n"]
     alpha: Float[Array, ""]

@@ -1,4 +1,4 @@
-"""Nonlinear state-space models (seed 003) and their Monte Carlo simulation."""
+"""Nonlinear state-space models (Wang 2022, eqs. (1)–(2)) and their Monte Carlo simulation."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def _gaussian_logpdf(resid: Float[Array, " m"], cov: Float[Array, "m m"]) -> Flo
 
 
 class NonlinearModel(eqx.Module):
-    r"""Nonlinear state-space model (seed 003, eqs. (1)–(2)); `prior` is the law of `x_0`.
+    r"""Nonlinear state-space model (Wang 2022, eqs. (1)–(2)); `prior` is the law of `x_0`.
 
     For `k = 1..T` (array index `t = k − 1`), with `additive=True` (default):
 
@@ -186,7 +186,7 @@ class NonlinearModel(eqx.Module):
         if not self.additive:
             raise ValueError(
                 "measurement_logpdf needs additive measurement noise (y = h(x, t) + v); with additive=False "
-                "p(y | x) has no closed form (seed 003, Section IV-C: estimate it by sampling v)"
+                "p(y | x) has no closed form (Wang 2022, Section IV-C: estimate it by sampling v)"
             )
         resid = jnp.asarray(y, self.dtype) - self.h(x, t)
         if self.measurement_noise is None:

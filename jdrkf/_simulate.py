@@ -10,11 +10,10 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
-from . import linalg
 from ._gaussian import Gaussian
 from ._models import LinearModel
-from ._noise import AbstractNoise, GaussianNoise
-from ._validation import as_float_array
+from ._noise import AbstractNoise, GaussianNoise, sampling_root
+from ._validation import as_float_array, check_count, check_covariance
 
 
 class Trajectories(eqx.Module):
@@ -56,6 +55,7 @@ def _check_law(name: str, law, dim: int, dtype) -> AbstractNoise | None:
         raise ValueError(f"{name} draws vectors of dimension {law.dim} but {dim} is needed")
     if law.mean.dtype != dtype:
         raise ValueError(f"{name} has dtype {law.mean.dtype} but the model has dtype {dtype}; build both in one precision")
+    check_covariance(f"{name}.cov", law.cov)
     return law
 
 
@@ -82,7 +82,7 @@ def simulate(
     - `model`: the *true* model to simulate (filters may use a different, nominal one): a
       `LinearModel`, or a `NonlinearModel` (then `x_k = f(x_{k-1}, w, t)`, `y_k = h(x_k, v, t)`
       with the model's own noise laws), or a `MultiSensorModel` (sensor noises correlated with
-      the previous process noise, eq. 34 of seed 002); for these two the keyword arguments
+      the previous process noise, Chen et al. 2025, eq. 34); for these two the keyword arguments
       below do not apply.
     - `prior`: law of `x_0`: a `jdrkf.Gaussian` or any noise law (e.g. `UQuadraticNoise`).
     - `process_noise`, `measurement_noise`: true laws of `w` and `v`; by default
@@ -91,12 +91,18 @@ def simulate(
     - `transition_perturbation`: `(key, t) -> Δ_t`, an `(n, n)` random perturbation
       added to `F_t` each step (e.g. `jdrkf.UniformPerturbation`); the true
       matrices are returned in `Trajectories.transition_matrices`.
+    - `num_steps`, `num_runs`: positive integers (`2.0`, `True` are rejected).
 
     Runs are independent: run `r` uses `jax.random.fold_in(key, r)`, so the first
     runs of a larger simulation equal a smaller one with the same key.
+
+    Gaussian draws use the exact square root of each covariance (singular ones
+    included); an indefinite covariance is never clipped: it raises `ValueError`
+    when concrete and gives NaN draws when traced.
     """
     if key is None:
         raise ValueError("simulate needs a PRNG key, e.g. jax.random.key(0)")
+    num_steps, num_runs = check_count("num_steps", num_steps), check_count("num_runs", num_runs)
     from ._nonlinear import NonlinearModel, _simulate_nonlinear  # noqa: PLC0415 (these modules import Trajectories from here)
 
     from ._multisensor import MultiSensorModel, _simulate_multisensor  # noqa: PLC0415
@@ -110,9 +116,9 @@ def simulate(
         return _simulate_nonlinear(key, model, prior, num_steps, num_runs)
     if not isinstance(model, LinearModel):
         raise ValueError(f"model must be a jdrkf.LinearModel, NonlinearModel or MultiSensorModel, got {type(model).__name__}")
-    num_steps, num_runs = int(num_steps), int(num_runs)
-    if num_steps < 1 or num_runs < 1:
-        raise ValueError(f"num_steps and num_runs must be positive, got {num_steps} and {num_runs}")
+    # The model may have been edited (e.g. eqx.tree_at) after its checked construction.
+    check_covariance("model.Q", model.Q)
+    check_covariance("model.R", model.R)
     model.check_horizon(num_steps)
     if inputs is not None:
         inputs = as_float_array("inputs", inputs, (2,))
@@ -133,7 +139,7 @@ def _gaussian_draw(key, mean, root):
 
 
 def _batched_sqrt(cov):
-    return linalg.psd_sqrt(cov) if cov.ndim == 2 else jax.vmap(linalg.psd_sqrt)(cov)
+    return sampling_root(cov) if cov.ndim == 2 else jax.vmap(sampling_root)(cov)
 
 
 @eqx.filter_jit

@@ -1,11 +1,13 @@
 """Eager input checks shared by models, noise laws and filters.
 
 All checks run on concrete shapes before tracing and raise `ValueError` naming the
-argument and the expected shape. Value checks (symmetry) run only on concrete
-arrays, so they are skipped silently under `jit`/`vmap` tracing.
+argument and the expected shape. Value checks (symmetry, positive semidefiniteness)
+run only on concrete arrays, so they are skipped under `jit`/`vmap` tracing.
 """
 
 from __future__ import annotations
+
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -45,8 +47,29 @@ def check_shape(name: str, x, expected: tuple, what: str = "") -> None:
         raise ValueError(f"{name} has shape {tuple(x.shape)} but expected trailing shape {shown}{extra}")
 
 
+PSD_TOLERANCE_FACTOR = 100
+"""`c` in the PSD tolerance `c · n · eps(dtype)` of `psd_rtol`."""
+
+
+def psd_rtol(dtype, n: int) -> float:
+    """Relative tolerance `c · n · eps(dtype)` (`c = PSD_TOLERANCE_FACTOR = 100`) of the
+    positive-semidefiniteness test `λ_min ≥ −c · n · eps · max(|λ|_max, tiny)`.
+
+    Round-off in forming an `n × n` covariance (e.g. `G Gᵀ`, `F P Fᵀ + Q`) perturbs
+    its eigenvalues by a few `n · eps · |λ|_max` (Weyl's inequality); `c = 100` leaves
+    a wide margin for that while still rejecting any genuinely indefinite matrix
+    whose negative eigenvalue is above the precision of its dtype.
+    """
+    return PSD_TOLERANCE_FACTOR * n * float(jnp.finfo(dtype).eps)
+
+
 def check_covariance(name: str, x) -> None:
-    """Square last two axes; symmetric (to 1e-6 relative) when the value is concrete."""
+    """Square last two axes; when the value is concrete: finite, symmetric (to 1e-6
+    relative) and positive semidefinite, `λ_min(x) ≥ −psd_rtol(dtype, n) · max(|λ|_max, tiny)`
+    per matrix (eigenvalues of the symmetric part; singular matrices pass).
+
+    A leading time axis is checked matrix by matrix. Traced values are not checked here.
+    """
     if x.shape[-1] != x.shape[-2]:
         raise ValueError(f"{name} must be square, got shape {tuple(x.shape)}")
     if is_concrete(x):
@@ -57,9 +80,35 @@ def check_covariance(name: str, x) -> None:
         scale = max(np.max(np.abs(a), initial=0.0), 1e-300)
         if asym > 1e-6 * scale:
             raise ValueError(f"{name} must be symmetric (max |{name} - {name}ᵀ| = {asym:.3g})")
-        diag = np.diagonal(a, axis1=-2, axis2=-1)
-        if np.any(diag < 0):
-            raise ValueError(f"{name} must be positive semidefinite (it has a negative diagonal entry)")
+        n = a.shape[-1]
+        if n == 0:
+            return
+        lam = np.linalg.eigvalsh(0.5 * (a + np.swapaxes(a, -1, -2)))
+        lam_min = lam[..., 0]
+        top = np.maximum(np.max(np.abs(lam), axis=-1), float(jnp.finfo(x.dtype).tiny))
+        tol = psd_rtol(x.dtype, n) * top
+        bad = lam_min < -tol
+        if np.any(bad):
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            where = f"{name}[{', '.join(map(str, idx))}]" if idx else name
+            raise ValueError(
+                f"{name} must be positive semidefinite: {where} has smallest eigenvalue {lam_min[idx]:.6g} "
+                f"(largest |eigenvalue| {top[idx]:.3g}; {x.dtype} round-off allows down to {-tol[idx]:.3g})"
+            )
+
+
+def check_count(name: str, value, minimum: int = 1) -> int:
+    """`value` as a Python `int`, checked to be an integer (Python, NumPy or a concrete
+    0-d integer array; not `bool`, not a float such as `2.0`) with `value ≥ minimum`."""
+    if isinstance(value, (bool, np.bool_)) or getattr(value, "dtype", None) == bool:
+        raise ValueError(f"{name} must be an integer, got the boolean {value!r}")
+    try:
+        count = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be an integer (and concrete), got {value!r} of type {type(value).__name__}") from None
+    if count < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {count}")
+    return count
 
 
 def check_time_axis(name: str, x, base_ndim: int, num_steps: int | None) -> int | None:

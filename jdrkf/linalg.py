@@ -1,7 +1,7 @@
 """Dense linear algebra for covariance matrices, with gradients that stay finite.
 
 Every function works on float32 and float64 inputs and is safe under `jax.jit`,
-`jax.vmap` and `jax.grad`. Rules followed here (see `algorithms.md` §0):
+`jax.vmap` and `jax.grad`. Rules followed here (see `docs/design.md`):
 
 - covariances are symmetrized after every update;
 - systems are solved with Cholesky factors, never with explicit inverses;
@@ -251,7 +251,8 @@ def bures_distance_squared(a: Float[ArrayLike, "n n"], b: Float[ArrayLike, "n n"
     """Squared Bures (Gelbrich) distance `Tr(A + B − 2 (A^½ B A^½)^½)`.
 
     The fidelity term is computed without matrix square roots as the nuclear norm
-    `‖L_Aᵀ L_B‖_*` of Cholesky factors (algorithms.md §0(c)); `a` and `b` must be
+    `‖L_Aᵀ L_B‖_*` of Cholesky factors (`Tr((A^½BA^½)^½)` for any `A = L_A L_Aᵀ`,
+    `B = L_B L_Bᵀ`); `a` and `b` must be
     positive definite. Clipped at zero against round-off.
     """
     a, b = symmetrize(a), symmetrize(b)

@@ -33,6 +33,7 @@ from . import metrics
 from ._gaussian import Gaussian
 from ._models import LinearModel
 from ._simulate import Trajectories
+from ._validation import check_count
 from .filters._base import AbstractFilter
 
 
@@ -69,12 +70,18 @@ class _Bounds(eqx.Module):
             return self.lower + jax.nn.softplus(u)
         return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
 
-    def inverse(self, x):
-        x = np.asarray(x, dtype=np.float64)
+    def inverse(self, x: float, name: str, dtype) -> float:
+        """`u` with `to(u) = x`; a start `x` on a bound (compared in the leaf's `dtype`) is
+        first moved `1e-3` inside (`1e-3` of the width for two bounds), one outside raises."""
+        lower = float(np.asarray(self.lower, dtype))
+        upper = None if self.upper is None else float(np.asarray(self.upper, dtype))
+        if not (np.isfinite(x) and x >= lower and (upper is None or x <= upper)):
+            shown = f"[{self.lower}, {'inf' if self.upper is None else self.upper}]"
+            raise ValueError(f"the start value of {name} is {x:.6g}, outside its bounds {shown}")
         if self.upper is None:
-            z = np.maximum(x - self.lower, 1e-3)
+            z = x - self.lower if x > lower else 1e-3
             return z + np.log(-np.expm1(-z))  # softplus⁻¹
-        p = np.clip((x - self.lower) / (self.upper - self.lower), 1e-3, 1 - 1e-3)
+        p = 1e-3 if x == lower else 1 - 1e-3 if x == upper else (x - self.lower) / (self.upper - self.lower)
         return np.log(p) - np.log1p(-p)
 
 
@@ -86,7 +93,13 @@ def _parse_bounds(bounds, count):
     if len(bounds) != count:
         raise ValueError(f"bounds must be one (lower, upper) pair or one per tuned leaf ({count}), got {len(bounds)}")
     out = []
-    for lo, hi in bounds:
+    for pair in bounds:
+        if not (isinstance(pair, Sequence) and len(pair) == 2):
+            raise ValueError(f"bounds must be (lower, upper) pairs, got {pair!r}")
+        lo, hi = pair
+        hi = None if hi is not None and float(hi) == np.inf else hi
+        if lo is None or not np.isfinite(float(lo)) or (hi is not None and not np.isfinite(float(hi))):
+            raise ValueError(f"bounds must have a finite lower and a finite (or None) upper, got ({lo}, {hi})")
         if hi is not None and not hi > lo:
             raise ValueError(f"bounds must have upper > lower, got ({lo}, {hi})")
         out.append(_Bounds(float(lo), None if hi is None else float(hi)))
@@ -96,6 +109,12 @@ def _parse_bounds(bounds, count):
 def _select(where, flt):
     leaves = where(flt)
     return tuple(leaves) if isinstance(leaves, (tuple, list)) else (leaves,)
+
+
+def _leaf_names(flt, leaves):
+    """`filter.path.to.leaf` for each selected leaf (its position in `where` if not found)."""
+    paths = {id(leaf): jax.tree_util.keystr(path) for path, leaf in jax.tree_util.tree_flatten_with_path(flt)[0]}
+    return [f"filter{paths[id(leaf)]}" if id(leaf) in paths else f"where(filter)[{i}]" for i, leaf in enumerate(leaves)]
 
 
 def _leaves(where, flt):
@@ -133,17 +152,26 @@ def fit(
     Each tuned leaf is `lower + softplus(u)` (or `lower + (upper − lower) sigmoid(u)`
     when `upper` is given) of an unconstrained `u`, so constraints such as `θ ≥ 0`,
     `θ₂ ≥ 1` (`bounds=(1.0, None)`) or `0 ≤ ε < 0.5` (`bounds=(0.0, 0.5)`) always
-    hold. `bounds` is one `(lower, upper)` pair for all leaves or one per leaf;
+    hold. `bounds` is one `(lower, upper)` pair for all leaves or one per leaf
+    (`lower` finite; `upper` finite, or `None` / `inf` for no upper bound);
     `shared=True` ties all selected leaves to one parameter (e.g. `θ₂ₓ = θ₂ᵥ`).
     The initial values are the filter's current ones (moved `1e-3` inside a bound
-    they sit on, where the softplus gradient would vanish). Default optimizer:
-    `optax.adam(0.05)`. The whole step (filter runs, solver derivatives) is jitted.
+    they sit on, where the softplus gradient would vanish); a value outside its
+    bounds raises `ValueError`, and so do unequal values of leaves tied by `shared`.
+    `steps` is a positive integer. Default optimizer: `optax.adam(0.05)`. The whole
+    step (filter runs, solver derivatives) is jitted.
     """
+    steps = check_count("steps", steps)
     leaves = _leaves(where, flt)
+    names = _leaf_names(flt, leaves)
+    starts = [float(leaf) for leaf in leaves]
+    if shared and len(set(starts)) > 1:
+        shown = ", ".join(f"{x:.6g}" for x in starts)
+        raise ValueError(f"shared=True ties {', '.join(names)} to one parameter, but their start values differ ({shown})")
     count = 1 if shared else len(leaves)
     bnds = _parse_bounds(bounds, count)
     dtype = leaves[0].dtype
-    u0 = jnp.asarray([b.inverse(leaf) for b, leaf in zip(bnds, leaves[:count], strict=True)], dtype)
+    u0 = jnp.asarray([b.inverse(x, name, dtype) for b, x, name in zip(bnds, starts[:count], names[:count], strict=True)], dtype)
     optimizer = optax.adam(0.05) if optimizer is None else optimizer
 
     def build(u):

@@ -36,7 +36,8 @@ class RESULTS(eqx.Enumeration):
     solver_not_converged = (
         "The worst-case covariance solver of a distributionally robust filter did not reach its "
         "tolerance within max_iter iterations. Raise max_iter, loosen rtol (float32 needs about "
-        "1e-5), or check that the nominal covariances are well conditioned."
+        "1e-5), or check that the nominal covariances are well conditioned. For SteadyStateKalmanFilter: "
+        "no stabilizing steady-state gain was found; (F, H) must be detectable and (F, G Q^½) stabilizable."
     )
     risk_sensitive_breakdown = (
         "The risk-sensitive inflation I − θ P was not positive definite (θ ≥ 1/λ_max of the predicted "
@@ -50,6 +51,24 @@ class RESULTS(eqx.Enumeration):
     nan_observation = (
         "An observation that the filter was told to use is NaN. To treat NaN entries as missing, "
         "pass observed=~jnp.isnan(ys) (a boolean mask of the entries to use) to the filter call."
+    )
+    invalid_hyperparameter = (
+        "A hyper-parameter that arrived traced (under jit, vmap or grad) is outside its valid "
+        "range (e.g. a negative radius, a contamination ratio outside [0, 1), a moment bound "
+        "below 1), so the filter's robust step is undefined. Concrete values are checked when "
+        "the filter or set is built; see the docstring of the set or filter for each range."
+    )
+    inconsistent_predicted_covariance = (
+        "The filter's predicted covariance P_{k+1|k} does not dominate F P_{k|k} Fᵀ: the process "
+        "noise it implies is indefinite (a Wasserstein worst case may shrink some directions), so no "
+        "joint Gaussian law of (x_k, x_{k+1}) has these moments and the RTS backward pass would give "
+        "indefinite smoothed covariances. Smooth the Kalman filter or a DR filter whose worst case "
+        "inflates (moment sets), or use smaller radii."
+    )
+    nonpositive_predicted_covariance = (
+        "A predicted covariance P_{k+1|k} reported by the filter was not numerically positive "
+        "definite, so the RTS smoother gain P_{k|k} Fᵀ P_{k+1|k}⁻¹ could not be computed (or the "
+        "backward pass overflowed). Make the process noise G Q Gᵀ positive definite, or run in float64."
     )
 
 

@@ -1,6 +1,6 @@
 """Bicausal optimal-transport (BCOT) distributionally robust Kalman filter (Han 2023,
 "Distributionally robust Kalman filtering with volatility uncertainty", arXiv
-2302.05993), the baseline of Jang, Hakobyan & Yang (seed 004); algorithms.md §D.2.
+2302.05993), the baseline of Jang, Hakobyan & Yang (2025); see `docs/math/steady_state.md`.
 
 Per step, with the previous posterior `N(x̂, Σ_p)` and nominal `Q_p = G Q Gᵀ`, `R_p`:
 
@@ -66,6 +66,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 from .. import linalg
 from .._gaussian import Gaussian
 from .._validation import as_float_array, check_covariance
+from ..sets._base import in_range
 from ..sets._base import radius as _radius
 from ..sets._solve import _dense_solve
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
@@ -83,7 +84,9 @@ class BCOTWorstCase(eqx.Module):
     - `multiplier`: `γ* = df*/d radius` (`inf` at `radius = 0`, where `f* − f₀ ~ √radius`).
     - `iterations`: Newton iterations; `residual`: max-norm of the optimality system at
       the returned point; `gap`: dual bound `G` minus `value` (≈ 0 at the optimum);
-      `converged`: the stopping test was met within `max_iter` with finite output.
+      `converged`: the stopping test was met within `max_iter` with finite output, the
+      duality gap is closed (`|gap| ≤ √eps · value`), and the radius, if traced, is a
+      finite number `≥ 0`.
     """
 
     prior_cov: Float[Array, "n n"]
@@ -321,6 +324,9 @@ def _solve(prior_cov, process_cov, noise_cov, a, c, radius, max_iter) -> BCOTWor
     gap = f0 + theta * gam - value
     multiplier = jnp.where(pos, 1.0 / (theta * x[1]), jnp.inf)
     finite = jnp.isfinite(value) & jnp.all(jnp.isfinite(sig)) & jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(r))
+    # Certificate: the dual bound meets the primal value (|gap| ~ eps at the optimum; a stopped
+    # or wrong point leaves a gap of either sign, e.g. 4% after one Newton step).
+    certified = jnp.abs(gap) <= jnp.sqrt(jnp.finfo(dtype).eps) * jnp.abs(value)
     return BCOTWorstCase(
         prior_cov=sig,
         process_cov=q,
@@ -331,7 +337,7 @@ def _solve(prior_cov, process_cov, noise_cov, a, c, radius, max_iter) -> BCOTWor
         iterations=iters.astype(int),
         residual=resid,
         gap=gap,
-        converged=(done > 0) & finite,
+        converged=(done > 0) & certified & finite & in_range(radius, 0.0),
     )
 
 
@@ -345,7 +351,7 @@ def bcot_worst_case(
     *,
     max_iter: int = 100,
 ) -> BCOTWorstCase:
-    """Worst-case `(Σ, Q, R)` of one BCOT step (Han 2023; algorithms.md §D.2).
+    """Worst-case `(Σ, Q, R)` of one BCOT step (Han 2023; `docs/math/steady_state.md`).
 
     Maximizes the posterior MSE `Tr(P⁻ − P⁻Cᵀ(CP⁻Cᵀ + R)⁻¹CP⁻)`, `P⁻ = AΣAᵀ + Q`, subject
     to `B²(N(Q, R), N(Q_p, R_p)) + B²(H^½ΣH^½, H^½Σ_pH^½) ≤ radius`, where
@@ -387,13 +393,13 @@ _solve_jit = eqx.filter_jit(_solve)
 
 class BCOTKF(AbstractFilter):
     """Bicausal optimal-transport DR Kalman filter (Han 2023), the BCOT baseline of Jang,
-    Hakobyan & Yang (seed 004; reference code `jangminhyuk/SteadyStateDRKF` `BCOT.py`).
+    Hakobyan & Yang (2025; their code `jangminhyuk/SteadyStateDRKF`, `BCOT.py`).
 
     Each step finds the worst-case prior `Σ*` (around the previous posterior
     covariance), process covariance `Q*` (around `G Q Gᵀ`) and measurement covariance
     `R*` (around `R`) under one joint transport budget (`bcot_worst_case`), then
-    predicts **once**, `x̂⁻ = F x̂ + B u + G μ_w` (the reference code applies `F` twice,
-    see reference-settings.md §6), and updates with the worst case:
+    predicts **once**, `x̂⁻ = F x̂ + B u + G μ_w` (the reference code `BCOT.py` applies
+    `F` twice), and updates with the worst case:
     `P⁻ = FΣ*Fᵀ + Q*`, `K = P⁻Hᵀ(HP⁻Hᵀ + R*)⁻¹`, `x̂ = x̂⁻ + K(y − Hx̂⁻ − μ_v)`,
     posterior `(I − KH)P⁻(I − KH)ᵀ + KR*Kᵀ` (Joseph form), carried to the next step.
 
@@ -402,6 +408,7 @@ class BCOTKF(AbstractFilter):
     - `radius`: budget `≥ 0` on the **squared** transport cost (the authors' convention:
       their grid values are not comparable with a `W₂` radius `θ`, whose analogue is
       `θ²`). `radius = 0` is exactly the Kalman filter. Differentiable for `radius > 0`.
+      Negative: `ValueError` when concrete, `RESULTS.invalid_hyperparameter` when traced.
     - `max_iter`: Newton iterations per step; a step that does not converge reports
       `RESULTS.solver_not_converged`.
     - `throw`, `outputs`: as in `jdrkf.KalmanFilter`. Missing components (the
@@ -454,6 +461,7 @@ class BCOTKF(AbstractFilter):
         filt = Gaussian(pred.mean + gain @ innov, linalg.symmetrize(e @ p @ e.T + gain @ sol.noise_cov @ gain.T))
         res = _step_result(failed, filt)
         res = RESULTS.where((res == RESULTS.successful) & ~sol.converged, RESULTS.solver_not_converged, res)
+        res = RESULTS.where(in_range(self.radius, 0.0), res, RESULTS.invalid_hyperparameter)
         info = {
             "prior_cov": sol.prior_cov,
             "process_cov": sol.process_cov,

@@ -22,6 +22,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._validation import as_float_array, is_concrete
+from ..sets._base import in_range
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _step_result, predict, update
 
@@ -33,7 +34,7 @@ from ._kalman import _step_result, predict, update
 #   g_τ(s) = u^(−1/w) = exp(s Λ(w s))                   (τ = 1: e^s; τ = 0: 1/(1 − s))
 #   φ_τ(s) = (1 − g_τ(s) (1 − s)) / τ                    (τ = 0: the limit 1/(1−s) − 1 + log(1−s))
 #   φ_τ'(s) = s g_τ(s) / u(s)
-# The published form of φ_τ (algorithms.md §C) is algebraically the same; this one is
+# The published form of φ_τ (Zorzi 2017) is algebraically the same; this one is
 # evaluated without cancellation, and continuously in τ including τ = 0 and τ = 1.
 
 _SERIES_MAX = 0.25  # |s| below this: power series of φ_τ in s (terms ≤ 0.25^k)
@@ -263,7 +264,7 @@ class TauKF(AbstractFilter):
     Then a Kalman update (Joseph form) with prior covariance `V_k`:
     `x̂_{k|k} = x̂_{k|k-1} + V_k Hᵀ(H V_k Hᵀ + R)⁻¹(y_k − H x̂_{k|k-1})`, and
     `Π_k = (I − K H) V_k (I − K H)ᵀ + K R Kᵀ` propagates. This is the published
-    one-step predictor (algorithms.md §C) re-organised as predict/robustify/update: its
+    one-step predictor (Zorzi 2017; `docs/math/divergence.md`) re-organised as predict/robustify/update: its
     `x̂_{t+1} = A x̂_t + G_t(y_t − C x̂_t)` equals `F x̂_{k|k}` and its
     `P_{t+1} = A V_t Aᵀ − G_t(C V_t Cᵀ + R)G_tᵀ + Q` equals `F Π_k Fᵀ + Q`. The first
     step robustifies `F P_0 Fᵀ + G Q Gᵀ` (the prior's prediction).
@@ -286,7 +287,8 @@ class TauKF(AbstractFilter):
     eigenvalues). Reported: `predicted = N(x̂_{k|k-1}, V_k)` (the least-favourable
     prediction), `filtered`, `loglik` = log-density of `y_k` under the least-favourable
     prediction, `info = {"theta": θ_k, "nominal_predicted_cov": P_k}`. A non-positive-
-    definite innovation covariance gives `RESULTS.nonpositive_innovation`.
+    definite innovation covariance gives `RESULTS.nonpositive_innovation`; traced `tau`
+    or `c` out of range, `RESULTS.invalid_hyperparameter` (concrete: `ValueError`).
 
     **Example:**
 
@@ -318,7 +320,9 @@ class TauKF(AbstractFilter):
         pred = _with_cov(nominal, v)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
         info = {"theta": theta, "nominal_predicted_cov": nominal.cov}
-        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=_step_result(failed, filt))
+        valid = in_range(self.tau, 0.0, 1.0) & in_range(self.c, 0.0)
+        result = RESULTS.where(valid, _step_result(failed, filt), RESULTS.invalid_hyperparameter)
+        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return filt, out
 
 
@@ -340,6 +344,7 @@ class RiskSensitiveKF(AbstractFilter):
     **Arguments:**
 
     - `theta`: risk-sensitivity parameter `≥ 0` (differentiable); `0` is the Kalman filter.
+      Out of range: `ValueError` when concrete, `RESULTS.invalid_hyperparameter` when traced.
     - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
     Reported: `predicted = N(x̂_{k|k-1}, P̃_k)`, `loglik` under that prediction,
@@ -377,6 +382,7 @@ class RiskSensitiveKF(AbstractFilter):
         pred = _with_cov(nominal, p_tilde)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
         result = RESULTS.where(valid, _step_result(failed, filt), RESULTS.risk_sensitive_breakdown)
+        result = RESULTS.where(in_range(self.theta, 0.0), result, RESULTS.invalid_hyperparameter)
         info = {"valid": valid, "nominal_predicted_cov": p}
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return filt, out

@@ -21,9 +21,15 @@ from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
 
-def _result(failed, sol, filt):
+def _result(failed, sol, filt, parts):
+    """Step code; an out-of-range traced hyper-parameter of any of `parts` (sets, outlier
+    model; `None` skipped) takes precedence over the failures it causes."""
     res = _step_result(failed, filt)
-    return RESULTS.where((res == RESULTS.successful) & ~sol.converged, RESULTS.solver_not_converged, res)
+    res = RESULTS.where((res == RESULTS.successful) & ~sol.converged, RESULTS.solver_not_converged, res)
+    for part in parts:
+        if part is not None:
+            res = RESULTS.where(part.valid(), res, RESULTS.invalid_hyperparameter)
+    return res
 
 
 def _decoupled_step(flt, model, state, y, t, u, observed, state_set, noise_set, outliers):
@@ -56,7 +62,7 @@ def _decoupled_step(flt, model, state, y, t, u, observed, state_set, noise_set, 
         filtered=filt,
         loglik=_gaussian_loglik(chol, innov, num_obs),
         info=info,
-        result=_result(failed, sol, filt),
+        result=_result(failed, sol, filt, (state_set, noise_set, outliers)),
     )
     return filt, out
 
@@ -83,7 +89,7 @@ def _joint_step(flt, model, state, y, t, u, observed, joint_set):
         filtered=filt,
         loglik=_gaussian_loglik(chol, innov, num_obs),
         info=info,
-        result=_result(failed, sol, filt),
+        result=_result(failed, sol, filt, (joint_set,)),
     )
     return filt, out
 
@@ -121,6 +127,9 @@ class DRKF(AbstractFilter):
     - `rtol`, `max_iter`: Frank–Wolfe tolerance (relative duality gap) and cap; a
       step that does not converge reports `RESULTS.solver_not_converged`.
     - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
+
+    Out-of-range set or outlier parameters raise `ValueError` when concrete; traced
+    (under `jit`, `vmap`, `grad`) every step reports `RESULTS.invalid_hyperparameter`.
 
     The whitening `S*^{-1/2}` of eq. 48 is the Cholesky factor `L⁻¹` of `S* = L Lᵀ`
     (any square root is valid; for one output all coincide). `predicted` holds the

@@ -1,4 +1,4 @@
-"""Centralized multi-sensor fusion filters (Chen, Li, Liu, He 2025, seed 002): the centralized
+"""Centralized multi-sensor fusion filters (Chen, Li, Liu, He 2025, IEEE SPL): the centralized
 KF, covariance intersection of local KF updates, and the marginal DR Kalman filter (Algorithm 1)."""
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def ci_weights(
     rtol: float | None = None,
     max_iter: int = 200,
 ) -> CIWeights:
-    """Covariance-intersection weights (algorithms.md §F): `ω` in the simplex minimizing
+    """Covariance-intersection weights (`docs/math/marginal.md`): `ω` in the simplex minimizing
     `log det` (`"det"`, MATLAB `fusecovint`'s default) or `Tr` of `(Σ ω_i Y_i)⁻¹` for the
     information matrices `Y_i = P_i⁻¹` (both objectives are convex in `ω`).
 
@@ -170,7 +170,7 @@ def covariance_intersection(
 
 class CovarianceIntersection(AbstractFilter):
     """Covariance-intersection fusion of local Kalman updates (the CI baseline of Chen et al.
-    2025, authors' MATLAB: reference-settings.md §5).
+    2025, as in the authors' MATLAB code `lylechan42/MDRKF`).
 
     Each step predicts from the previous CI estimate (the common fused prior), lets every
     sensor `i` update it with its own `y^i` (local KF, `R_i`), and fuses the `p` local
@@ -248,7 +248,8 @@ class MarginalDRKF(AbstractFilter):
     `predicted` holds `N(F x̂⁻, S*_xx)`; `loglik` is the log-density of `y_k` under the
     worst-case predictive `N(H F x̂⁻, S*_yy)`; `info` has the worst-case value, iterations,
     convergence flag, the nominal and worst-case joint covariances. Non-converged solves
-    report `RESULTS.solver_not_converged`.
+    report `RESULTS.solver_not_converged`; radii out of range raise `ValueError` when
+    concrete and report `RESULTS.invalid_hyperparameter` when traced.
     """
 
     set: MarginalMoment | MarginalKL  # noqa: A003
@@ -286,6 +287,7 @@ class MarginalDRKF(AbstractFilter):
         filt = Gaussian(mean_pred + res.gain @ innov, linalg.symmetrize(res.posterior_cov))
         result = _step_result(failed, filt)
         result = RESULTS.where((result == RESULTS.successful) & ~res.converged, RESULTS.solver_not_converged, result)
+        result = RESULTS.where(self.set.valid(), result, RESULTS.invalid_hyperparameter)
         info = {
             "value": res.value,
             "iterations": res.iterations,

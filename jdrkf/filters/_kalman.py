@@ -7,12 +7,15 @@ import math
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .. import linalg
 from .._gaussian import Gaussian
 from .._models import LinearModel
+from .._validation import is_concrete, psd_rtol
 from ._base import RESULTS, AbstractFilter, StepOutput
 
 
@@ -133,12 +136,57 @@ class KalmanFilter(AbstractFilter):
 class SteadyStateGain(eqx.Module):
     """Steady-state quantities of a time-invariant model: predicted covariance `P`
     (solution of the filtering DARE), innovation covariance `S = H P Hᵀ + R`, gain
-    `K = P Hᵀ S⁻¹` and filtered covariance `(I − K H) P (I − K H)ᵀ + K R Kᵀ`."""
+    `K = P Hᵀ S⁻¹` and filtered covariance `(I − K H) P (I − K H)ᵀ + K R Kᵀ`.
+
+    `converged` (boolean scalar) is the failure signal: `False` when these are not the
+    stabilizing steady state (see `SteadyStateKalmanFilter.solve`; gains assembled by other
+    solvers carry their solver's certificate).
+    """
 
     predicted_cov: Float[Array, "n n"]
     innovation_cov: Float[Array, "m m"]
     gain: Float[Array, "n m"]
     filtered_cov: Float[Array, "n n"]
+    converged: Bool[Array, ""]
+
+
+def _is_stable(a: Float[Array, "n n"], squarings: int = 64) -> Bool[Array, ""]:
+    """`ρ(a) < 1` (to working precision): `a^N → 0` for `N = 2^squarings` iff the
+    spectral radius is below one, so `a` is squared repeatedly (matrix products only,
+    no nonsymmetric eigensolver) and the result must be finite and below `1/2`."""
+    with jax.default_matmul_precision("highest"):  # no TF32 rounding on GPUs
+        power = lax.fori_loop(0, squarings, lambda _, b: b @ b, a)
+    return jnp.all(jnp.isfinite(power)) & (jnp.max(jnp.abs(power)) < 0.5)
+
+
+def _steady_state_converged(model: LinearModel, p, s, gain) -> Bool[Array, ""]:
+    """Checks that only the stabilizing solution of the filtering DARE passes:
+
+    1. `P`, `S`, `K` finite;
+    2. the Riccati residual `F P Fᵀ − F K H P Fᵀ + G Q Gᵀ − P` at most `√eps` times the
+       sum of the norms (max-abs) of its four terms;
+    3. `P` symmetric (to `√eps`) and positive semidefinite (`λ_min(P) ≥ −psd_rtol · |λ|_max`);
+    4. the error dynamics `F (I − K H)` stable (spectral radius `< 1`).
+
+    The stabilizing solution is the unique PSD solution meeting 4; it exists iff `(F, H)`
+    is detectable and `(F, G Q^½)` has no uncontrollable mode on the unit circle, and the
+    doubling solver reaches it when `(F, G Q^½)` is moreover stabilizable. Without it
+    (e.g. an undetectable unstable mode) no gain passes 4.
+    """
+    p, s, gain = (lax.stop_gradient(x) for x in (p, s, gain))
+    f, h = (lax.stop_gradient(x) for x in (model.F, model.H))
+    gqg = lax.stop_gradient(model.G @ model.Q @ model.G.T)
+    eps = jnp.finfo(p.dtype).eps
+    finite = jnp.all(jnp.isfinite(p)) & jnp.all(jnp.isfinite(s)) & jnp.all(jnp.isfinite(gain))
+    fpf, corr = f @ p @ f.T, f @ gain @ h @ p @ f.T
+    norm = lambda x: jnp.max(jnp.abs(x), initial=0.0)
+    residual = norm(fpf - corr + gqg - p) <= jnp.sqrt(eps) * (norm(fpf) + norm(corr) + norm(gqg) + norm(p))
+    lam = jnp.linalg.eigvalsh(linalg.symmetrize(p))
+    top = jnp.maximum(jnp.max(jnp.abs(lam)), jnp.finfo(p.dtype).tiny)
+    symmetric = norm(p - p.T) <= jnp.sqrt(eps) * norm(p)
+    psd = lam[0] >= -psd_rtol(p.dtype, p.shape[-1]) * top
+    stable = _is_stable(f @ (jnp.eye(p.shape[-1], dtype=p.dtype) - gain @ h))
+    return finite & residual & symmetric & psd & stable
 
 
 class SteadyStateKalmanFilter(AbstractFilter):
@@ -152,6 +200,10 @@ class SteadyStateKalmanFilter(AbstractFilter):
     contribute no correction (their gain columns are dropped; the gain is not
     recomputed) and the log-likelihood marginalizes them, which costs an `m × m`
     Cholesky per step.
+
+    A model without a stabilizing steady state (`solve(model).converged` false, e.g.
+    `(F, H)` undetectable) raises `ValueError` when the model is concrete; a traced one
+    gives `RESULTS.solver_not_converged` at every step.
     """
 
     throw: bool = eqx.field(default=True, static=True)
@@ -159,7 +211,14 @@ class SteadyStateKalmanFilter(AbstractFilter):
 
     @staticmethod
     def solve(model: LinearModel) -> SteadyStateGain:
-        """Steady-state covariances and gain of a time-invariant `model`."""
+        """Steady-state covariances and gain of a time-invariant `model`.
+
+        `converged` of the result is `False` when the stabilizing DARE solution does not
+        exist or was not found (non-finite values, Riccati residual not small relative
+        to its terms, `P` not symmetric PSD, or `F (I − K H)` not stable): e.g. for an
+        undetectable `(F, H)`, or a mode on or outside the unit circle that the process
+        noise does not excite.
+        """
         if model.num_steps is not None:
             raise ValueError("SteadyStateKalmanFilter needs a time-invariant model (no leading time axis)")
         p = linalg.solve_dare(model.F, model.H, model.G @ model.Q @ model.G.T, model.R)
@@ -167,14 +226,24 @@ class SteadyStateKalmanFilter(AbstractFilter):
         gain = linalg.psd_solve(s, model.H @ p).T
         a = jnp.eye(model.state_dim, dtype=p.dtype) - gain @ model.H
         filt = linalg.symmetrize(a @ p @ a.T + gain @ model.R @ gain.T)
-        return SteadyStateGain(predicted_cov=p, innovation_cov=s, gain=gain, filtered_cov=filt)
+        converged = _steady_state_converged(model, p, s, gain)
+        return SteadyStateGain(predicted_cov=p, innovation_cov=s, gain=gain, filtered_cov=filt, converged=converged)
 
     def init(self, model: LinearModel, prior: Gaussian):
         ss = self.solve(model)
+        if is_concrete(ss.converged) and not bool(ss.converged):
+            raise ValueError(
+                "model: no stabilizing steady-state Kalman gain was found (SteadyStateKalmanFilter.solve(model)"
+                ".converged is False); the steady state needs (F, H) detectable and (F, G Q^½) stabilizable. "
+                "Use jdrkf.KalmanFilter for this model."
+            )
         return prior.mean, ss, linalg.cholesky(ss.innovation_cov)
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
-        return _constant_gain_step(model, state, y, u, None, observed)
+        state, out = _constant_gain_step(model, state, y, u, None, observed)
+        # A failed steady state (traced model) overrides the per-step codes it causes.
+        result = RESULTS.where(state[1].converged, out.result, RESULTS.solver_not_converged)
+        return state, StepOutput(predicted=out.predicted, filtered=out.filtered, loglik=out.loglik, info=out.info, result=result)
 
 
 def _constant_gain_step(model, state, y, u, noise_cov, observed, converged=True):

@@ -22,12 +22,13 @@ import equinox.internal as eqxi
 import jax.numpy as jnp
 from jax import lax
 from jax.scipy.linalg import solve_triangular
-from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .. import linalg
 from .._gaussian import Gaussian
+from ..sets._base import in_range
 from ..sets._weights import AbstractWeight, channel_param, student_t_weight
-from ._base import DEFAULT_OUTPUTS, AbstractFilter, StepOutput
+from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
 __all__ = ["RBKF", "STKF", "STKF_AR1", "STKF_AR2", "VBKF", "IRLSResult", "irls_update"]
@@ -202,6 +203,11 @@ class _IRLSFilter(AbstractFilter):
     def _weights(self) -> tuple[WeightFn | None, WeightFn | None]:
         raise NotImplementedError
 
+    def _valid(self) -> Bool[Array, ""]:
+        """Traced range check of the array hyper-parameters (`channel_param` checks
+        concrete ones eagerly); out of range, steps report `RESULTS.invalid_hyperparameter`."""
+        return jnp.asarray(True)
+
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
@@ -216,7 +222,8 @@ class _IRLSFilter(AbstractFilter):
         )
         filt = sol.filtered
         info = {"iterations": sol.iterations, "weights_x": sol.weights_x, "weights_y": sol.weights_y}
-        out = StepOutput(predicted=pred, filtered=filt, loglik=sol.loglik, info=info, result=_step_result(sol.failed, filt))
+        result = RESULTS.where(self._valid(), _step_result(sol.failed, filt), RESULTS.invalid_hyperparameter)
+        out = StepOutput(predicted=pred, filtered=filt, loglik=sol.loglik, info=info, result=result)
         return filt, out
 
 
@@ -363,6 +370,13 @@ class STKF(_IRLSFilter):
         self.max_iter, self.tol, self.fixed_iterations, self.covariance = max_iter, float(tol), fixed_iterations, covariance
         self.throw, self.outputs = throw, outputs
 
+    def _valid(self):
+        ok = in_range(self.tau2_x, 0.0, lower_open=True) & in_range(self.tau2_y, 0.0, lower_open=True)
+        for nu in (self.nu_x, self.nu_y):
+            if nu is not None:
+                ok = ok & in_range(nu, 0.0, lower_open=True, allow_inf=True)
+        return ok
+
     def _weights(self):
         wx = None if self.nu_x is None else (lambda e: student_t_weight(e, self.nu_x, self.tau2_x))
         wy = None if self.nu_y is None else (lambda e: student_t_weight(e, self.nu_y, self.tau2_y))
@@ -477,6 +491,18 @@ class STKF_AR1(AbstractFilter):
         dtype = prior.cov.dtype
         return prior, nu.astype(dtype), tau2.astype(dtype)
 
+    def _valid(self) -> Bool[Array, ""]:
+        """Traced range check (the intervals of the eager `channel_param` checks)."""
+        ok = jnp.asarray(True)
+        for nu, tau2, rho in ((self.nu_x, self.tau2_x, self.rho_x), (self.nu_y, self.tau2_y, self.rho_y)):
+            ok = ok & in_range(nu, 0.0, lower_open=True, allow_inf=True) & in_range(tau2, 0.0, lower_open=True)
+            ok = ok & in_range(rho, 0.0, 1.0, lower_open=True)
+        if self.eta is not None:
+            ok = ok & in_range(self.eta, 0.0, lower_open=True)
+        if self.xi is not None:
+            ok = ok & in_range(self.xi, 0.0, allow_inf=True)
+        return ok
+
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         belief, nu_prev, tau2_prev = state
         n = belief.mean.shape[0]
@@ -518,7 +544,8 @@ class STKF_AR1(AbstractFilter):
         keep = jnp.concatenate([jnp.ones(n, bool), observed])
         nu, tau2 = jnp.where(keep, nu, nu_prev), jnp.where(keep, tau2, tau2_prev)
         info = {"iterations": sol.iterations, "weights_x": sol.weights_x, "weights_y": sol.weights_y, "nu": nu, "tau2": tau2}
-        out = StepOutput(predicted=pred, filtered=filt, loglik=sol.loglik, info=info, result=_step_result(sol.failed, filt))
+        result = RESULTS.where(self._valid(), _step_result(sol.failed, filt), RESULTS.invalid_hyperparameter)
+        out = StepOutput(predicted=pred, filtered=filt, loglik=sol.loglik, info=info, result=result)
         return (filt, nu, tau2), out
 
 
@@ -685,8 +712,10 @@ class VBKF(AbstractFilter):
         if self.fixed_prior:
             alpha, beta = alpha_prev, beta_prev
         failed = ~jnp.all(jnp.isfinite(chol_s))
+        valid = in_range(self.alpha0, 0.0, lower_open=True) & in_range(self.beta0, 0.0, lower_open=True)
+        valid = valid & in_range(self.rho, 0.0, 1.0, lower_open=True)
         out = StepOutput(
             predicted=pred, filtered=filt, loglik=_gaussian_loglik(chol_s, innov, num_obs), info=info,
-            result=_step_result(failed, filt),
+            result=RESULTS.where(valid, _step_result(failed, filt), RESULTS.invalid_hyperparameter),
         )
         return (filt, alpha, beta), out

@@ -3,7 +3,8 @@
 Proposition 1 and Theorem 2, eqs. 17–20).
 
 The computation follows the authors' `convergence_check.py` (`compute_matrices`,
-`find_phi_T`, `compute_theta_max`), see `reference-settings.md` §6, "θ_max".
+`find_phi_T`, `compute_theta_max`; public code `jangminhyuk/SteadyStateDRKF`); see
+`docs/math/steady_state.md`.
 """
 
 from __future__ import annotations
@@ -144,7 +145,7 @@ def theta_max(
     max_iter: int = 1000,
 ) -> ThetaMax:
     """The radius θ_max of Theorem 2 (eq. 20) for the model `x⁺ = A x + w`, `y = C x + v`
-    with nominal `w ~ N(0, Σ_w)`, `v ~ N(0, Σ_v)` (Jang, Hakobyan & Yang, seed 004).
+    with nominal `w ~ N(0, Σ_w)`, `v ~ N(0, Σ_v)` (Jang, Hakobyan & Yang 2025).
 
     Steps (as in the authors' `convergence_check.py`):
 

@@ -1,4 +1,4 @@
-"""Gaussian-approximation filters for `jdrkf.NonlinearModel` (seed 003, Section III-A):
+"""Gaussian-approximation filters for `jdrkf.NonlinearModel` (Wang 2022, Section III-A):
 the unscented Kalman filter and the sampling ("ensemble") Gaussian filter."""
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def _weighted_outer(a, b, wc):
 
 def _moment_update(pred_mean, pred_cov, dx, y_pred, dy, wc, noise_cov, y, observed):
     """Kalman-type update from the cross moments of prior state and measurement points
-    (seed 003, Section III-A; Simon 2006, eqs. (14.64)–(14.67)):
+    (Wang 2022, Section III-A; Simon 2006, eqs. (14.64)–(14.67)):
     `P_yy = Σ W^c dy dyᵀ + R`, `P_xy = Σ W^c dx dyᵀ`, `K = P_xy P_yy⁻¹`,
     `m⁺ = m⁻ + K (y − ŷ)`, `P⁺ = P⁻ − K P_yy Kᵀ`. Entries of `y` that `observed` marks
     missing are decoupled (identity in `P_yy`, zero in `P_xy` and the innovation)."""
@@ -166,7 +166,7 @@ def _check_prior(prior):
 
 class UnscentedKF(AbstractFilter):
     r"""Unscented Kalman filter for `jdrkf.NonlinearModel` (Julier–Uhlmann; Wan & van der
-    Merwe 2000; Simon 2006, pp. 448–450 — the Gaussian-approximation filter of seed 003,
+    Merwe 2000; Simon 2006, pp. 448–450 — the Gaussian-approximation filter of Wang 2022,
     Section III-A and Corollary 1).
 
     **Arguments:**
@@ -251,7 +251,7 @@ class UnscentedKF(AbstractFilter):
 
 
 class EnsembleKF(AbstractFilter):
-    r"""The sampling Gaussian-approximation filter of seed 003 ("GA-EnKF", the authors'
+    r"""The sampling Gaussian-approximation filter of Wang 2022 ("GA-EnKF", the authors'
     `GaussianApproximation.m`): each step draws `N = num_samples` samples of
     `N(m, P)`, propagates them and applies the moment-matching update of
     `UnscentedKF` with equal weights `1/N` (sample covariances normalized by `N`,

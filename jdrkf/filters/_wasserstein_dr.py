@@ -1,5 +1,5 @@
 """Time-varying and steady-state Wasserstein DR Kalman filters (Jang, Hakobyan & Yang,
-"On the steady-state distributionally robust Kalman filter"; seed 004)."""
+"On the steady-state distributionally robust Kalman filter", 2025; see `docs/math/steady_state.md`)."""
 
 from __future__ import annotations
 
@@ -17,10 +17,10 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 from .. import linalg
 from .._gaussian import Gaussian
 from .._models import LinearModel
-from ..sets._base import radius
+from ..sets._base import in_range, radius
 from ..sets._solve import _dense_solve, default_rtol, worst_case
 from ..sets._wasserstein import Wasserstein, _oracle_residual
-from ._base import DEFAULT_OUTPUTS, AbstractFilter
+from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter
 from ._dr import _decoupled_step
 from ._kalman import SteadyStateGain, _constant_gain_step
 
@@ -30,6 +30,11 @@ def _posterior(prior_cov, noise_cov, h):
     gain = linalg.psd_solve(linalg.symmetrize(h @ prior_cov @ h.T + noise_cov), h @ prior_cov).T
     a = jnp.eye(prior_cov.shape[0], dtype=prior_cov.dtype) - gain @ h
     return linalg.symmetrize(a @ prior_cov @ a.T + gain @ noise_cov @ gain.T), gain
+
+
+def _positive_definite(a: Float[Array, "n n"]) -> Bool[Array, ""]:
+    """Whether the symmetric `a` is numerically positive definite (its Cholesky factor is finite)."""
+    return jnp.all(jnp.isfinite(jnp.diagonal(jnp.linalg.cholesky(a))))
 
 
 def _time_invariant(model: LinearModel, who: str):
@@ -165,7 +170,7 @@ def _stationary_residual(a, h, w, v, theta_x, theta_v):
     With `Σ = post(Σ⁻, Σv)`, `Σ̂⁻ = A Σ Aᵀ + Σ̂w`, weight `Ŵ = I + AᵀΛA` and the gradients
     `D_x = (I − KC)ᵀŴ(I − KC)`, `D_v = KᵀŴK` of `Tr(Ŵ post)`:
     `Σ⁻ = T_x Σ̂⁻ T_x`, `Σv = T_v Σ̂v T_v` with `T = (I − θ s D)⁻¹` and
-    `s² Tr(Σ̂ (D T)²) = 1` (the Gelbrich oracles of algorithms.md §A.1, each with its
+    `s² Tr(Σ̂ (D T)²) = 1` (the Gelbrich oracles of `jdrkf.sets.Wasserstein`, each with its
     scalar multiplier; `s = 1` for an inactive set, `Tr D = 0`) and
     `Λ = D_x T_x` (the sensitivity of the weighted value to the pseudo-nominal, i.e. the
     multiplier of `Σ̂⁻ = A Σ Aᵀ + Σ̂w`). Inverses are `linalg.psd_inv`, whose
@@ -299,13 +304,17 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
     _, unpack = _layout(a.shape[0], h.shape[0])
 
     # On the branch of the convex problem's KKT point the ball multipliers are positive
-    # (negative roots of the sets' scalar equations belong to the minimizing oracle) and
-    # `I + AᵀΛA`, the multiplier of the Schur inequality of (14), is positive definite;
-    # the system has other roots, with an indefinite weight and a lower value.
+    # (negative roots of the sets' scalar equations belong to the minimizing oracle),
+    # `I + AᵀΛA`, the multiplier of the Schur inequality of (14), is positive definite, and
+    # so are `Σ⁻` and `Σv`. The system has other roots: with an indefinite weight (and a
+    # lower value), and — when `Σ̂w` is nearly singular — with an indefinite `Σ⁻` that is
+    # self-consistent because `Σ̂⁻ = AΣAᵀ + Σ̂w` inherits the negative eigenvalue of `Σ`
+    # (infeasible for (14), with a *higher* "value"). Trial points off this domain are
+    # rejected, so a converged solve is a feasible KKT point of the convex problem.
     def in_domain(x):
-        _, _, mx, mv, lam = unpack(x)
-        weight = jnp.linalg.cholesky(jnp.eye(a.shape[0], dtype=dtype) + a.T @ lam @ a)
-        return (mx > 0) & (mv > 0) & jnp.all(jnp.isfinite(jnp.diagonal(weight)))
+        prior, noise, mx, mv, lam = unpack(x)
+        weight = jnp.eye(a.shape[0], dtype=dtype) + a.T @ lam @ a
+        return (mx > 0) & (mv > 0) & _positive_definite(weight) & _positive_definite(prior) & _positive_definite(noise)
 
     def cond(c):
         _, tau, dtau, _, _, _ = c
@@ -355,7 +364,7 @@ def _steady_state_impl(a, h, w, v, theta_x, theta_v, max_iter):
     prior, noise, _, _, lam = _layout(a.shape[0], h.shape[0])[1](x)
     noise = jnp.where(theta_v == 0, v, noise)  # exact at zero radius
     post, gain = _posterior(prior, noise, h)
-    converged = ok > 0
+    converged = (ok > 0) & in_range(theta_x, 0.0) & in_range(theta_v, 0.0)
     return SteadyStateDR(
         gain=gain,
         prior_cov=prior,
@@ -382,7 +391,7 @@ class SteadyStateDRKF(AbstractFilter):
     inequality is tight. Its KKT conditions, with the multiplier `Λ` of the stationarity
     constraint, say that `(Σ⁻, Σv)` solve a per-step problem (5) around the stationary
     pseudo-nominal `Σ̂⁻` but for the *weighted* objective `Tr((I + AᵀΛA) post(Σ⁻, Σv))`,
-    so both are closed-form Gelbrich oracles (algorithms.md §A.1) of its gradients, and
+    so both are closed-form Gelbrich oracles (`jdrkf.sets.Wasserstein`) of its gradients, and
     that `Λ = D_x(I − θx s_x D_x)⁻¹` (the envelope gradient of that weighted problem
     with respect to its nominal; at `θx = 0` it is the adjoint discrete Lyapunov equation
     of the Kalman filter). This smooth system (`n(n+1) + m(m+1)/2 + 2` unknowns: upper
@@ -390,8 +399,13 @@ class SteadyStateDRKF(AbstractFilter):
     with backtracking, started at the best of a few fixed-point sweeps (oracles, then
     `Λ`) and continued in the radii from `0` (where the nominal steady state (DARE) and
     its adjoint solve it exactly) to `(θx, θv)` — in one stage when that converges, in
-    more otherwise, keeping the ball multipliers positive and `I + AᵀΛA ≻ 0` (the Schur
-    multiplier; the system also has spurious roots); derivatives with respect to `θx`,
+    more otherwise, keeping the ball multipliers positive, `I + AᵀΛA ≻ 0` (the Schur
+    multiplier) and `Σ⁻, Σv ≻ 0`. The system also has spurious roots — one with an
+    indefinite `Σ⁻` appears when `Σ̂w` is nearly singular, self-consistent because the
+    pseudo-nominal `Σ̂⁻ = AΣAᵀ + Σ̂w` then inherits `Σ`'s negative eigenvalue; it is
+    infeasible for (14) and has a larger trace — so `converged` means: residual at
+    tolerance *at a point of that domain*, i.e. a feasible KKT point of the convex
+    problem, hence its optimum. Derivatives with respect to `θx`,
     `θv` and the model come from the implicit function theorem on the same system
     (`lax.custom_root`). The value matches the SDP (14) solved by Clarabel to ~1e-10
     (tests).
@@ -438,10 +452,13 @@ class SteadyStateDRKF(AbstractFilter):
     def init(self, model: LinearModel, prior: Gaussian):
         sol = self.solve(model)
         innov = linalg.symmetrize(model.H @ sol.prior_cov @ model.H.T + sol.noise_cov)
-        ss = SteadyStateGain(predicted_cov=sol.prior_cov, innovation_cov=innov, gain=sol.gain, filtered_cov=sol.posterior_cov)
+        ss = SteadyStateGain(predicted_cov=sol.prior_cov, innovation_cov=innov, gain=sol.gain, filtered_cov=sol.posterior_cov,
+                             converged=sol.converged)
         return prior.mean, ss, linalg.cholesky(innov), sol.noise_cov, sol.converged
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         mean, ss, chol_s, noise_cov, converged = state
         (mean, ss, chol_s), out = _constant_gain_step(model, (mean, ss, chol_s), y, u, noise_cov, observed, converged)
+        valid = in_range(self.theta_x, 0.0) & in_range(self.theta_v, 0.0)
+        out = eqx.tree_at(lambda o: o.result, out, RESULTS.where(valid, out.result, RESULTS.invalid_hyperparameter))
         return (mean, ss, chol_s, noise_cov, converged), out

@@ -22,6 +22,26 @@ def radius(name: str, x: ArrayLike, lower: float = 0.0) -> Float[Array, ""]:
     return x
 
 
+def in_range(
+    x: Float[ArrayLike, "*d"],
+    lower: float,
+    upper: float = np.inf,
+    *,
+    lower_open: bool = False,
+    upper_open: bool = False,
+    allow_inf: bool = False,
+) -> Bool[Array, ""]:
+    """Traced range check of a hyper-parameter (the run-time counterpart of the eager
+    checks): every entry of `x` lies in the interval from `lower` to `upper` (open or
+    closed ends) and is finite (`+inf` too with `allow_inf`); `False` for NaN. A few
+    scalar comparisons, unbatched under `vmap` over data."""
+    x = jnp.asarray(x)
+    above = x > lower if lower_open else x >= lower
+    below = x < upper if upper_open else x <= upper
+    finite = (x == jnp.inf) | jnp.isfinite(x) if allow_inf else jnp.isfinite(x)
+    return jnp.all(above & below & finite)
+
+
 class AbstractAmbiguitySet(eqx.Module):
     """A ball of Gaussian laws `N(μ̂, Σ)` around a nominal `N(μ̂, Σ̂)`.
 
@@ -52,6 +72,11 @@ class AbstractAmbiguitySet(eqx.Module):
     @abc.abstractmethod
     def is_nominal(self) -> Bool[Array, ""]:
         """Whether the set contains only the nominal law (zero radius)."""
+
+    @abc.abstractmethod
+    def valid(self) -> Bool[Array, ""]:
+        """Whether the parameters are in range (checked eagerly when concrete; this is the
+        traced check, which filters turn into `RESULTS.invalid_hyperparameter`)."""
 
     def lmo(self, direction: Float[ArrayLike, "d d"], nominal: Float[ArrayLike, "d d"]) -> Float[Array, "d d"]:
         """Linear maximization oracle: `argmax ⟨direction, Σ⟩` over the set."""

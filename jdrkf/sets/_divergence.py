@@ -7,7 +7,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
-from ._base import AbstractAmbiguitySet, radius
+from ._base import AbstractAmbiguitySet, in_range, radius
 
 _NEWTON_MAX_ITER = 200
 # φ(x) = 1/(1 − x) − 1 + ln(1 − x) = Σ_{k≥2} (1 − 1/k) xᵏ: below this size of x the closed
@@ -46,7 +46,7 @@ class KL(AbstractAmbiguitySet):
     `KL = ½[Tr(Σ̂⁻¹Σ) − d − ln det(Σ̂⁻¹Σ)]` (Wang & Ye 2022, eqs. 18, 21 and
     Theorem 2a; note that Zorzi's τ-KF code compares *twice* this quantity with its
     tolerance, see `jdrkf.TauKF`). The paper skipped this set as "difficult"; here
-    its linear oracle is closed form up to one scalar (algorithms.md §B.3): with
+    its linear oracle is closed form up to one scalar (`docs/math/wasserstein.md`): with
     `Σ̂ = R Rᵀ` (Cholesky) and `W = Rᵀ D R`, the maximizer of `⟨D, Σ⟩` is
     `R (I − t W)⁻¹ Rᵀ`, where `t ∈ (0, 1/λ_max(W))` solves
     `½[Tr((I − tW)⁻¹) − d + ln det(I − tW)] = c`, found by Newton's method from
@@ -64,6 +64,9 @@ class KL(AbstractAmbiguitySet):
 
     def is_nominal(self):
         return self.c == 0
+
+    def valid(self):
+        return in_range(self.c, 0.0)
 
     def oracle(self, direction, nominal):
         c = lax.stop_gradient(self.c).astype(nominal.dtype)

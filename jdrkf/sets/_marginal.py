@@ -4,7 +4,7 @@ Distributionally Robust Kalman Filter for Sensor Fusion", IEEE SPL 2025; problem
 The adversary picks the joint covariance `S` of `(x, y¹, …, yᵖ)`; only the marginal
 blocks `S_{B_i}` of `(x, yⁱ)` are constrained, to a moment set or a KL ball around the
 nominal `Σ_i`. The cross-sensor blocks are free: the adversary chooses how sensor
-errors correlate. Method (algorithms.md §B.2–B.3):
+errors correlate. Method (`docs/math/marginal.md`):
 
 1. Whitening `S = G Z Gᵀ`, with `G` lower block-triangular and `G_i G_iᵀ = Σ_i` for
    the rows/columns of block `B_i`: the constraints become `γ₁ I ⪯ Z_{B_i} ⪯ γ₂ I`, or
@@ -48,6 +48,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
 from .._validation import as_float_array, check_covariance, is_concrete
+from ._base import in_range
 from ._solve import default_rtol
 
 _DYKSTRA_MAX_ITER = 200
@@ -85,6 +86,10 @@ class MarginalMoment(eqx.Module):
         self.gamma1 = _per_sensor("gamma1", gamma1, lower=0.0, upper=1.0, lower_open=True)
         self.gamma2 = _per_sensor("gamma2", gamma2, lower=1.0, upper=np.inf)
 
+    def valid(self) -> Bool[Array, ""]:
+        """Traced range check (`0 < γ₁ ≤ 1 ≤ γ₂ < ∞`); concrete values are checked eagerly."""
+        return in_range(self.gamma1, 0.0, 1.0, lower_open=True) & in_range(self.gamma2, 1.0)
+
 
 class MarginalKL(eqx.Module):
     """Per-sensor KL balls `KL(N(0, S_{B_i}) ‖ N(0, Σ_i)) =
@@ -97,6 +102,10 @@ class MarginalKL(eqx.Module):
     def __init__(self, c: Float[ArrayLike, "*p"]):
         self.c = _per_sensor("c", c, lower=0.0, upper=np.inf)
 
+    def valid(self) -> Bool[Array, ""]:
+        """Traced range check (`0 ≤ c < ∞`); concrete values are checked eagerly."""
+        return in_range(self.c, 0.0)
+
 
 class MarginalWorstCase(eqx.Module):
     """Solution of the marginal DR-MMSE problem (Chen et al. 2025, eq. 16 and eq. 32).
@@ -107,7 +116,8 @@ class MarginalWorstCase(eqx.Module):
     - `polished`: the barrier path was used and converged (Newton decrement² ≤ 1e-3 μ);
     - `iterations`, `residual`: projected-gradient iterations and relative size of its
       last step (0 and 0 when the set has an interior and the barrier path is used);
-    - `converged`: `polished`, or the projected gradient reached `rtol`.
+    - `converged`: `polished`, or the projected gradient reached `rtol`; `False` when a
+      traced radius is out of range (`set.valid()`).
     """
 
     cov: Float[Array, "d d"]
@@ -149,7 +159,7 @@ def _whitening(cov, n, dims):
 
 
 def _objective(g, n):
-    """`f(Z) = Tr(S/S_yy)`, `S = G Z Gᵀ`, and `∇f = Gᵀ[I, −K]ᵀ[I, −K]G` (algorithms.md §0)."""
+    """`f(Z) = Tr(S/S_yy)`, `S = G Z Gᵀ`, and `∇f = Gᵀ[I, −K]ᵀ[I, −K]G` (Danskin)."""
 
     def fg(z):
         s = linalg.symmetrize(g @ z @ g.T)
@@ -203,7 +213,7 @@ def _kl_map(lam, two_c):
 
 
 def _projection(kind, params, blocks, eps):
-    """Dykstra projection onto `{Z ⪰ εI} ∩ ⋂ᵢ Cᵢ` (algorithms.md §B.2 step 4)."""
+    """Dykstra projection onto `{Z ⪰ εI} ∩ ⋂ᵢ Cᵢ` (each `Cᵢ` a spectral map of one block)."""
     n_sets = len(blocks) + 1
 
     def project_j(j, y):
@@ -518,7 +528,8 @@ def marginal_mmse(
         kind = "kl"
         params = (_broadcast("c", set.c, p, dtype),)
     rtol = default_rtol(dtype) if rtol is None else float(rtol)
-    return _marginal_mmse(cov, params, n, dims, kind, rtol, int(max_iter))
+    sol = _marginal_mmse(cov, params, n, dims, kind, rtol, int(max_iter))
+    return eqx.tree_at(lambda s: s.converged, sol, sol.converged & set.valid())
 
 
 @eqx.filter_jit

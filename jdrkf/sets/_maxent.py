@@ -11,7 +11,7 @@ Three problems, all used to build worst-case prior particle weights (Methods 1�
 * `maxent_wasserstein` / `maxent_transport` — Theorem 5, eqs. (27)–(29) (coupling-entropy
   relaxation): `P_ij = q_i softmax_j(−v₀ c_ij)`, `p_j = Σ_i P_ij`, with `v₀ = 0` when
   `C(0) = Σ c_ij q_i / M ≤ θ` and otherwise the root of `C(v₀) = Σ c_ij P_ij(v₀) = θ`
-  (`C` decreases). Feasible iff `θ ≥ Σ_i q_i min_j c_ij`. Note (algorithms.md §H) that the
+  (`C` decreases). Feasible iff `θ ≥ Σ_i q_i min_j c_ij`. Note (`docs/math/particle.md`) that the
   coupling entropy is a *surrogate*: `p` does not maximize `H(p)` of the marginal itself.
 * `maxent_wasserstein_continuous` — Theorem 3, eqs. (15)–(18): density
   `p(x) = exp(−v₀ min_i(‖x − x_i‖ − λ_i) − v₁ − 1)` on a bounded domain, discretized on
@@ -42,6 +42,7 @@ from jax.nn import log_softmax, logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .._validation import as_float_array, is_concrete
+from ._base import in_range
 
 __all__ = [
     "MaxEntContinuous",
@@ -64,7 +65,8 @@ class MaxEntResult(eqx.Module):
       (Wasserstein; `0` when the budget is inactive). For `method="pgd"` it is the final
       iterate `λ₀` resp. `v₀` of the authors' dual variables.
     - `constraint`: `KL(p‖q)` resp. the transport cost `Σ c_ij P_ij` at the output.
-    - `iterations`, `converged`: of the scalar Newton solve (or of the PGD loop).
+    - `iterations`, `converged`: of the scalar Newton solve (or of the PGD loop);
+      `converged` is `False` for a traced `theta` that is not a finite number `≥ 0`.
     - `feasible`: `False` only for a Wasserstein budget below the minimal cost
       `Σ_i q_i min_j c_ij` (then `p` is the `v₀ → ∞` limit, NaN-free).
     - `coupling`: the joint `P` (Wasserstein) or `None` (KL).
@@ -155,6 +157,12 @@ def _check_theta(theta, dtype):
         if not np.isfinite(v) or v < 0:
             raise ValueError(f"theta must be a finite number >= 0, got {v:g}")
     return theta.astype(dtype)
+
+
+def _theta_checked(res: MaxEntResult, theta) -> MaxEntResult:
+    """`res` with `converged = False` when a traced `theta` is out of range (NaN, negative
+    or infinite; concrete values raise in `_check_theta`)."""
+    return eqx.tree_at(lambda r: r.converged, res, res.converged & in_range(theta, 0.0))
 
 
 def _check_method(method):
@@ -265,8 +273,8 @@ def maxent_kl_solve(
     q = _check_prob("q", q)
     theta = _check_theta(theta, q.dtype)
     if method == "exact":
-        return _kl_exact(q, theta, 60 if max_iter is None else max_iter)
-    return _kl_pgd(q, theta, step, 50_000 if max_iter is None else max_iter, tol, init)
+        return _theta_checked(_kl_exact(q, theta, 60 if max_iter is None else max_iter), theta)
+    return _theta_checked(_kl_pgd(q, theta, step, 50_000 if max_iter is None else max_iter, tol, init), theta)
 
 
 def maxent_kl(q: Float[ArrayLike, " N"], theta: Float[ArrayLike, ""], **kwargs) -> Float[Array, " N"]:
@@ -407,8 +415,8 @@ def maxent_transport_solve(
                 f"sum_i q_i min_j c_ij = {c_min:.6g}"
             )
     if method == "exact":
-        return _transport_exact(q, cost, theta, 100 if max_iter is None else max_iter)
-    return _transport_pgd(q, cost, theta, step, 5_000_000 if max_iter is None else max_iter, tol, init)
+        return _theta_checked(_transport_exact(q, cost, theta, 100 if max_iter is None else max_iter), theta)
+    return _theta_checked(_transport_pgd(q, cost, theta, step, 5_000_000 if max_iter is None else max_iter, tol, init), theta)
 
 
 def maxent_transport(q, cost, theta, **kwargs) -> Float[Array, " M"]:
@@ -512,7 +520,8 @@ class MaxEntContinuous(eqx.Module):
     - `constraint` = transport cost `Σ_k mass_k Σ_i assignment_ki ‖y_k − x_i‖`; `cell_mass`
       = `Σ_k mass_k assignment_ki` (= `q` at the solution, eq. 21).
     - `iterations`, `converged`: Newton steps and `‖∇dual‖_∞ ≤ tol` (`method="exact"`), or
-      PGD passes and "the projected gradient (19)–(21) is below `tol`" (`method="pgd"`).
+      PGD passes and "the projected gradient (19)–(21) is below `tol`" (`method="pgd"`);
+      `False` for a traced `theta` that is not a finite number `≥ 0`.
     """
 
     support: Float[Array, "N d"]
@@ -785,5 +794,5 @@ def maxent_wasserstein_continuous(
         constraint=jnp.sum(mass[:, None] * r * c),
         cell_mass=mass @ r,
         iterations=k,
-        converged=converged,
+        converged=converged & in_range(theta, 0.0),
     )

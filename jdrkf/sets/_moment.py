@@ -6,7 +6,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._validation import is_concrete
-from ._base import AbstractAmbiguitySet, radius
+from ._base import AbstractAmbiguitySet, in_range, radius
 
 
 class Moment(AbstractAmbiguitySet):
@@ -30,6 +30,9 @@ class Moment(AbstractAmbiguitySet):
 
     def is_nominal(self):
         return self.theta2 == 1
+
+    def valid(self):
+        return in_range(self.theta2, 1.0) & in_range(self.theta1, 0.0, 1.0)
 
     def worst_case(self, nominal: Float[Array, "d d"]) -> Float[Array, "d d"]:
         """`θ₂ Σ̂` (Theorem 5)."""

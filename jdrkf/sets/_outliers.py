@@ -24,9 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.scipy.special import erf, erfc, log_ndtr
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._validation import as_float_array, is_concrete
+from ._base import in_range
 
 __all__ = ["AbstractOutlierModel", "EpsContamination", "EpsNormal"]
 
@@ -265,6 +266,11 @@ class AbstractOutlierModel(eqx.Module):
     def i_min(self) -> Float[Array, ""]:
         """Minimal Fisher information `E_p[−(ln p)'']` in `[0, 1]` (1 for the standard normal)."""
 
+    @abc.abstractmethod
+    def valid(self) -> Bool[Array, ""]:
+        """Whether the parameters are in range (checked eagerly when concrete; this is the
+        traced check, which filters turn into `RESULTS.invalid_hyperparameter`)."""
+
 
 class EpsContamination(AbstractOutlierModel):
     """ε-contamination set `{(1 − ε) Φ + ε H : H symmetric}` (Lemma 1; Huber's
@@ -282,8 +288,8 @@ class EpsContamination(AbstractOutlierModel):
 
     **Arguments:**
 
-    - `eps`: contamination fraction, a scalar in `[0, 0.5)` (checked when concrete, not
-      under `jit`/`vmap` tracing).
+    - `eps`: contamination fraction, a scalar in `[0, 0.5)` (a `ValueError` when concrete;
+      traced, `valid()` is `False` and filters report `RESULTS.invalid_hyperparameter`).
     - `k`: optional clipping threshold `K > 0` that replaces `K(ε)` in (39) and (42),
       e.g. the rounded `k = 1.4` that Wang & Ye use with `eps = 0.05`. With `k` set,
       `ε = 0` gives `i_min = 1 − 2Φ(−k)` and a clipping `ψ`.
@@ -305,6 +311,11 @@ class EpsContamination(AbstractOutlierModel):
                 raise ValueError(f"k must be > 0 (the clipping threshold K of eq. 39), got {float(k)}")
             k = k.astype(self.eps.dtype)
         self.k = k
+
+    def valid(self) -> Bool[Array, ""]:
+        """`0 ≤ ε < 0.5` and, if given, `k > 0`."""
+        ok = in_range(self.eps, 0.0, 0.5, upper_open=True)
+        return ok if self.k is None else ok & in_range(self.k, 0.0, lower_open=True, allow_inf=True)
 
     def threshold(self) -> Float[Array, ""]:
         """`K`: the override `k` if given, else `K(ε)` of Lemma 1 (`+∞` at `ε = 0`)."""
@@ -351,8 +362,9 @@ class EpsNormal(AbstractOutlierModel):
 
     **Arguments:**
 
-    - `eps`: the Kolmogorov radius, a scalar in `[0, 0.0303]` (checked when concrete,
-      not under `jit`/`vmap` tracing).
+    - `eps`: the Kolmogorov radius, a scalar in `[0, 0.0303]` (a `ValueError` when
+      concrete; traced, `valid()` is `False` and filters report
+      `RESULTS.invalid_hyperparameter`).
     """
 
     eps: Float[Array, ""]
@@ -360,6 +372,10 @@ class EpsNormal(AbstractOutlierModel):
     def __init__(self, eps: Float[ArrayLike, ""]):
         hint = " (Lemma 2 needs a <= b; Remark 2. Use EpsContamination for larger eps)"
         self.eps = _check_eps(eps, _EPS_NORMAL_MAX, closed=True, hint=hint)
+
+    def valid(self) -> Bool[Array, ""]:
+        """`0 ≤ ε ≤ 0.0303` (compared in the precision of `eps`)."""
+        return in_range(self.eps, 0.0, _EPS_NORMAL_MAX)
 
     def constants(self) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
         """`(a, b, c)` of Lemma 2 (`(0, +∞, √2)` at `ε = 0`)."""

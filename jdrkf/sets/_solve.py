@@ -161,10 +161,15 @@ def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
             ok = fg(trial)[0] >= value + eta * gap - 0.5 * eta * eta * beta * pn
             return jnp.where(ok, beta, 2.0 * beta), ok, j + 1
 
-        beta, _, _ = lax.while_loop(bt_cond, bt_body, (beta, done, 0))
-        eta = jnp.where(done, 0.0, jnp.minimum(gap / (beta * pn_safe), 1.0))
+        beta, ascent, _ = lax.while_loop(bt_cond, bt_body, (beta, done, 0))
+        # No step of the line search ascends: Frank–Wolfe has reached its rounding floor
+        # (float32 far from the tolerance). Stop here; the chord steps and the final
+        # certificate decide convergence (without this, each remaining iteration would
+        # spend 60 backtracking evaluations).
+        stalled = ~ascent
+        eta = jnp.where(done | stalled, 0.0, jnp.minimum(gap / (beta * pn_safe), 1.0))
         s = tuple(linalg.symmetrize(si + eta * pi) for si, pi in zip(s, p, strict=True))
-        return s, k + jnp.where(done, 0, 1), beta, done, tuple(mults)
+        return s, k + jnp.where(done | stalled, 0, 1), beta, done | stalled, tuple(mults)
 
     beta0 = jnp.ones((), dtype) / sum(jnp.trace(nom) for nom in nominals)
     zero = jnp.zeros((), dtype)
@@ -398,15 +403,16 @@ def worst_case(
 @eqx.filter_jit
 def _worst_case(state_set, noise_set, prior_cov, H, noise_cov, i_min, rtol, max_iter):
     sets, noms = (state_set, noise_set), (prior_cov, noise_cov)
+    valid = state_set.valid() & noise_set.valid()  # radii in range (traced radii are not checked eagerly)
     if all(isinstance(st, Moment) for st in sets):
         s = tuple(st.worst_case(nom) for st, nom in zip(sets, noms, strict=True))
         value, _ = _decoupled_objective(H, i_min).fg(s)
         zero = jnp.zeros((), prior_cov.dtype)
-        return WorstCase(s[0], s[1], value, jnp.zeros((), int), zero, jnp.ones((), bool))
+        return WorstCase(s[0], s[1], value, jnp.zeros((), int), zero, valid)
     both_wasserstein = all(isinstance(st, Wasserstein) for st in sets)
     make_jacobian = _wasserstein_jacobian if both_wasserstein else None
     s, value, iters, gap, conv = _solve(_decoupled_objective, (H, i_min), sets, noms, rtol, max_iter, make_jacobian)
-    return WorstCase(s[0], s[1], value, iters, gap, conv)
+    return WorstCase(s[0], s[1], value, iters, gap, conv & valid)
 
 
 def worst_case_joint(
@@ -437,9 +443,9 @@ def _worst_case_joint(joint_set, cov, n, rtol, max_iter):
     if isinstance(joint_set, Moment):
         s = joint_set.worst_case(cov)
         value, _ = _joint_objective(n, cov.shape[0], cov.dtype).fg((s,))
-        return JointWorstCase(s, value, jnp.zeros((), int), jnp.zeros((), cov.dtype), jnp.ones((), bool))
+        return JointWorstCase(s, value, jnp.zeros((), int), jnp.zeros((), cov.dtype), joint_set.valid())
     s, value, iters, gap, conv = _solve(lambda: _joint_objective(n, cov.shape[0], cov.dtype), (), (joint_set,), (cov,), rtol, max_iter)
-    return JointWorstCase(s[0], value, iters, gap, conv)
+    return JointWorstCase(s[0], value, iters, gap, conv & joint_set.valid())
 
 
 def wasserstein_mmse(

@@ -7,7 +7,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
-from ._base import AbstractAmbiguitySet, radius
+from ._base import AbstractAmbiguitySet, in_range, radius
 
 _NEWTON_MAX_ITER = 100
 
@@ -19,7 +19,7 @@ class Wasserstein(AbstractAmbiguitySet):
     `√Tr(Σ + Σ̂ − 2(Σ̂^½ Σ Σ̂^½)^½)` (Wang & Ye 2022, eq. 19 and Theorem 2b;
     Shafieezadeh-Abadeh et al. 2018). `theta` is in the units of the state.
 
-    The linear oracle is closed form up to one scalar (algorithms.md §A.1): for
+    The linear oracle is closed form up to one scalar (`docs/math/wasserstein.md`): for
     `D ⪰ 0` it is `T Σ̂ T` with `T = (I − θ s D)⁻¹`, where `s ∈ (0, 1/(θ λ_max(D)))`
     solves `Tr(Σ̂ (s D T)²) = 1`. (`s = t/θ` with `t = 1/γ` of the paper's dual; this
     scaling keeps the multiplier finite at `θ = 0`, so derivatives in `θ` exist there.)
@@ -34,6 +34,9 @@ class Wasserstein(AbstractAmbiguitySet):
 
     def is_nominal(self):
         return self.theta == 0
+
+    def valid(self):
+        return in_range(self.theta, 0.0)
 
     def oracle(self, direction, nominal):
         rho = lax.stop_gradient(self.theta).astype(nominal.dtype)

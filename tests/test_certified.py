@@ -1,0 +1,98 @@
+"""`converged` is set only by a check a wrong answer cannot pass.
+
+Each solver is stopped early (zero or one iteration) and must then report failure, and
+the steady-state DR solver must find the feasible root of its optimality system on a
+system where an infeasible root exists (checked against the SDP solved by Clarabel).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jdrkf
+from jdrkf.filters import bcot_worst_case, ci_weights, theta_max
+from jdrkf.sets import KL, Wasserstein, maxent_kl_solve, worst_case
+from stationary_oracle import stationary_sdp
+
+# A random 2-state system with a nearly singular process noise (eigenvalues 1e-8 and
+# 0.02) on which the optimality system of the steady-state problem has a root with an
+# indefinite worst-case prior (trace 3.9573, above the SDP optimum 3.9529).
+SPURIOUS_ROOT_SYSTEM = dict(
+    F=[[0.9345217140409523, -0.012457641373551303], [-0.012457641373551183, 0.9364809818368653]],
+    H=[[-0.7308045420469873, -0.4547072604734497]],
+    Q=[[0.00494250341089901, -0.008864311244574749], [-0.008864311244574749, 0.015898061383277224]],
+    R=[[0.1418617397593826]],
+)
+
+
+def test_steady_state_finds_the_feasible_root():
+    m = {k: np.asarray(v) for k, v in SPURIOUS_ROOT_SYSTEM.items()}
+    model = jdrkf.LinearModel(**{k: jnp.asarray(v) for k, v in m.items()})
+    sol = jdrkf.SteadyStateDRKF(0.1, 0.1).solve(model)
+    ref = stationary_sdp(m["F"], m["H"], m["Q"], m["R"], 0.1, 0.1)
+    assert ref["accurate"]
+    assert bool(sol.converged)
+    for name in ("prior_cov", "noise_cov", "posterior_cov"):
+        assert np.linalg.eigvalsh(np.asarray(getattr(sol, name))).min() > 0, name
+    np.testing.assert_allclose(float(sol.value), ref["value"], rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(sol.posterior_cov), ref["posterior_cov"], atol=1e-6)
+
+
+@pytest.fixture
+def problem():
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(3, 3))
+    b = rng.normal(size=(2, 2))
+    return a @ a.T + np.eye(3), rng.normal(size=(2, 3)), b @ b.T + np.eye(2)
+
+
+@pytest.mark.parametrize("sets", [(Wasserstein(0.5), Wasserstein(0.3)), (KL(0.5), KL(0.3))], ids=["wasserstein", "kl"])
+def test_worst_case_stopped_early_is_not_converged(problem, sets):
+    prior, h, noise = problem
+    exact = worst_case(*sets, prior, h, noise)
+    assert bool(exact.converged)
+    early = worst_case(*sets, prior, h, noise, max_iter=0)
+    assert abs(float(early.value) / float(exact.value) - 1) > 0.1  # the nominal, far from the optimum
+    assert not bool(early.converged)
+
+
+def test_drkf_stopped_early_reports_solver_not_converged(problem, rng):
+    model = jdrkf.LinearModel(F=0.9 * jnp.eye(2), H=jnp.array([[1.0, 0.5]]), Q=0.1 * jnp.eye(2), R=jnp.eye(1))
+    prior = jdrkf.Gaussian(jnp.zeros(2), jnp.eye(2))
+    ys = jnp.asarray(rng.normal(size=(5, 1)))
+    flt = jdrkf.DRKF(state_set=Wasserstein(0.5), noise_set=Wasserstein(0.5), max_iter=0, throw=False)
+    assert flt(model, prior, ys).result == jdrkf.RESULTS.solver_not_converged
+    with pytest.raises(Exception, match="did not reach its tolerance"):
+        jdrkf.DRKF(state_set=Wasserstein(0.5), noise_set=Wasserstein(0.5), max_iter=0)(model, prior, ys)
+
+
+@pytest.mark.parametrize("max_iter", [0, 1])
+def test_steady_state_dr_stopped_early_is_not_converged(max_iter):
+    model = jdrkf.LinearModel(F=jnp.array([[0.9, 0.1], [0.0, 0.9]]), H=jnp.array([[1.0, 0.0]]), Q=0.1 * jnp.eye(2), R=jnp.eye(1))
+    assert bool(jdrkf.SteadyStateDRKF(0.5, 0.5).solve(model).converged)
+    assert not bool(jdrkf.SteadyStateDRKF(0.5, 0.5, max_iter=max_iter).solve(model).converged)
+
+
+def test_other_solvers_stopped_early_are_not_converged():
+    f, c, w, v = np.array([[0.9, 0.1], [0.0, 0.9]]), np.array([[1.0, 0.0]]), 0.1 * np.eye(2), np.eye(1)
+    assert bool(bcot_worst_case(np.eye(2), w, v, f, c, 0.3).converged)
+    assert not bool(bcot_worst_case(np.eye(2), w, v, f, c, 0.3, max_iter=1).converged)
+    infos = jnp.stack([2 * jnp.eye(2), jnp.array([[1.0, 0.3], [0.3, 0.5]]), jnp.array([[0.2, 0.0], [0.0, 3.0]])])
+    assert bool(ci_weights(infos).converged)
+    assert not bool(ci_weights(infos, max_iter=0).converged)
+    assert bool(theta_max(f, c, w, v).valid)
+    assert not bool(theta_max(f, c, w, v, max_iter=1).valid)
+    q = jnp.array([0.1, 0.2, 0.3, 0.4])
+    assert bool(maxent_kl_solve(q, 0.1).converged)
+    for k in (0, 1):
+        assert not bool(maxent_kl_solve(q, 0.1, max_iter=k).converged)
+
+
+def test_em_with_zero_iterations_is_not_converged(rng):
+    model = jdrkf.LinearModel(F=0.9 * jnp.eye(2), H=jnp.eye(2), Q=0.1 * jnp.eye(2), R=0.5 * jnp.eye(2))
+    prior = jdrkf.Gaussian(jnp.zeros(2), jnp.eye(2))
+    traj = jdrkf.simulate(jax.random.key(0), model, prior, num_steps=50, num_runs=1)
+    res = jdrkf.em_noise_covariances(model.F, model.H, traj.observations[0], jnp.zeros(2), jnp.eye(2), max_iter=0)
+    assert int(res.iterations) == 0
+    assert not bool(res.converged)
