@@ -1,5 +1,5 @@
 """Distributionally robust particle filter of Wang (2022), "Distributionally Robust
-State Estimation for Nonlinear Systems", IEEE TSP (seed 003): Algorithm 2 with the
+State Estimation for Nonlinear Systems", IEEE TSP: Algorithm 2 with the
 worst-case prior particles of Methods 1–2, the worst-case likelihoods of Methods 3–5
 and the outlier treatment of Methods 6–7.
 
@@ -42,10 +42,18 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
 from .._validation import as_float_array, is_concrete
+from ..sets._base import in_range
 from ..sets._maxent import maxent_kl_solve, maxent_transport_solve, maxent_wasserstein_continuous
 from . import _resampling
-from ._base import DEFAULT_OUTPUTS, AbstractFilter, StepOutput
-from ._particle import ParticleState, _gaussian_loglik_particles, _skip_incomplete, _weigh_and_resample, particle_moments
+from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
+from ._particle import (
+    ParticleState,
+    _check_resampling_gradient,
+    _gaussian_loglik_particles,
+    _skip_incomplete,
+    _weigh_and_resample,
+    particle_moments,
+)
 
 __all__ = ["DRParticleFilter"]
 
@@ -170,7 +178,7 @@ def _continuous_loglik(ys, y, radius, key, num_points):
 
 
 class DRParticleFilter(AbstractFilter):
-    """Distributionally robust particle filter (seed 003, Algorithm 2, Methods 1–7) for
+    """Distributionally robust particle filter (Wang 2022, Algorithm 2, Methods 1–7) for
     `jdrkf.NonlinearModel`.
 
     **Arguments:**
@@ -209,9 +217,10 @@ class DRParticleFilter(AbstractFilter):
     - `batch_size`: particles whose likelihood solves (Methods 4–5) run together
       (`jax.lax.map(..., batch_size=...)`); default: all for Method 5, one at a time for
       Method 4 (its Newton solve factorizes a small matrix per particle).
-    - `resampling`, `ess_threshold`, `estimate`: Step 5 and the reported estimate, as in
-      `BootstrapPF` (`ess_threshold=1`: every step). The authors' RPF (reference code,
-      docs/reference-settings.md §3) is `DRParticleFilter(N, theta=5.0, outlier="drop",
+    - `resampling`, `ess_threshold`, `estimate`, `resampling_gradient`: Step 5, the
+      reported estimate and the gradient of resampling, as in `BootstrapPF`
+      (`ess_threshold=1`: every step). The authors' RPF (their MATLAB code
+      `Spratm-Asleaf/DRSE-Nonlinear`) is `DRParticleFilter(N, theta=5.0, outlier="drop",
       outlier_threshold=1e-6, resampling="multinomial", ess_threshold=1.0,
       estimate="resampled_mean")` (their KL prior reweighting is disabled).
     - `return_particles`: add to `info` the worst-case prior cloud of every step
@@ -232,9 +241,17 @@ class DRParticleFilter(AbstractFilter):
     `resampled`, `outlier`, `max_loglik` (`max_j log p*(y | x^j)` before the treatment).
 
     Gradients: without resampling (`ess_threshold=0`) the filter is a smooth function of
-    `theta`, `prior_radius` (Methods 1) and `likelihood_radius` (Method 5); with resampling
-    the ancestor indices carry no gradient, so gradients ignore the resampling's
-    dependence on the parameters (biased). Methods 2 and 4 pass no gradient to the radii.
+    `theta`, `prior_radius` (Methods 1) and `likelihood_radius` (Method 5) for a fixed key.
+    Resampling is differentiated as in `BootstrapPF` (`resampling_gradient`, default
+    `"score"`: the stop-gradient resampling of Ścibior & Wood 2021, forward values
+    unchanged). With `prior="none"` and `outlier=None` the filter is a bootstrap PF with
+    per-particle potentials `p*(y | x^j)`, so `∇ exp(marginal_loglik)` is an unbiased
+    estimate of the gradient of the expected likelihood estimate (for Method 3 with
+    Gaussian noise: of `p(y_{1:T})` under `R → θR`), and `∇ marginal_loglik` is
+    consistent but biased at finite `N`. The worst-case priors (Methods 1–2) and the
+    outlier treatments (Methods 6–7: a decision on the whole cloud, not differentiated)
+    act on the whole cloud, and carry no such guarantee. Methods 2 and 4 pass no gradient
+    to the radii.
     """
 
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
@@ -254,6 +271,7 @@ class DRParticleFilter(AbstractFilter):
     resampling: str = eqx.field(static=True)
     ess_threshold: float = eqx.field(static=True)
     estimate: str = eqx.field(static=True)
+    resampling_gradient: str = eqx.field(static=True)
     return_particles: bool = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
 
@@ -274,6 +292,7 @@ class DRParticleFilter(AbstractFilter):
         resampling: str = "systematic",
         ess_threshold: float = 0.5,
         estimate: str = "weighted_mean",
+        resampling_gradient: str = "score",
         return_particles: bool = False,
         throw: bool = True,
         outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
@@ -312,6 +331,8 @@ class DRParticleFilter(AbstractFilter):
         if estimate not in ("weighted_mean", "resampled_mean"):
             raise ValueError(f"estimate must be 'weighted_mean' or 'resampled_mean', got {estimate!r}")
         self.resampling, self.ess_threshold, self.estimate = resampling, ess_threshold, estimate
+        _check_resampling_gradient(resampling_gradient)
+        self.resampling_gradient = resampling_gradient
         self.return_particles = bool(return_particles)
         self.throw, self.outputs = bool(throw), outputs
 
@@ -436,6 +457,11 @@ class DRParticleFilter(AbstractFilter):
         info = {"ess": ess, "resampled": do_resample, "outlier": outlier, "max_loglik": max_ll}
         if self.return_particles:
             info.update(particles=x, prior_log_weights=logq, log_weights=lw)
+        # Traced range check of the constructor's eager checks (a few scalar comparisons).
+        valid = in_range(self.prior_radius, 0.0, lower_open=self.prior == "wasserstein_sample")
+        valid = valid & in_range(self.theta, 0.0, lower_open=True) & in_range(self.outlier_threshold, 0.0)
+        valid = valid & in_range(self.likelihood_radius, 0.0, lower_open=self.likelihood == "wasserstein")
+        result = RESULTS.where(valid, result, RESULTS.invalid_hyperparameter)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return ParticleState(new_x, new_lw), out
 

@@ -1,4 +1,4 @@
-"""Bootstrap particle filter for `jdrkf.NonlinearModel` (seed 003, Sec. V baseline)."""
+"""Bootstrap particle filter for `jdrkf.NonlinearModel` (the baseline of Wang 2022, Sec. V)."""
 
 from __future__ import annotations
 
@@ -20,6 +20,12 @@ from ._base import RESULTS, AbstractFilter, StepOutput
 from ._resampling import RESAMPLERS
 
 _ESTIMATES = ("weighted_mean", "resampled_mean")
+_RESAMPLING_GRADIENTS = ("score", "ignore")
+
+
+def _check_resampling_gradient(value) -> None:
+    if value not in _RESAMPLING_GRADIENTS:
+        raise ValueError(f"resampling_gradient must be one of {list(_RESAMPLING_GRADIENTS)}, got {value!r}")
 
 
 class ParticleState(eqx.Module):
@@ -72,7 +78,7 @@ def _gaussian_loglik_particles(model: NonlinearModel, y, hx, observed):
 class BootstrapPF(AbstractFilter):
     r"""Bootstrap (sequential importance resampling) particle filter.
 
-    For additive-measurement `jdrkf.NonlinearModel`s (seed 003, eqs. (1)–(2); the PF of
+    For additive-measurement `jdrkf.NonlinearModel`s (Wang 2022, eqs. (1)–(2); the PF of
     its Sec. V experiments). Step `k` (array index `t = k − 1`), with `N` particles:
 
     1. propagate: `x_k^i = transition(x_{k-1}^i, w^i, t)`, `w^i ~ process_noise` (default `N(0, Q)`);
@@ -89,7 +95,7 @@ class BootstrapPF(AbstractFilter):
     `estimate="resampled_mean"` reports the moments of the cloud *after* step 4 instead:
     with `resampling="multinomial", ess_threshold=1` this is the authors' MATLAB PF
     (multinomial resampling at every step, estimate = mean of the resampled particles;
-    see `docs/reference-settings.md` §3), which adds the resampling noise to the estimate.
+    the authors' MATLAB code `Spratm-Asleaf/DRSE-Nonlinear`), which adds the resampling noise to the estimate.
 
     `predicted` is the weighted moments of the propagated cloud (before weighing), `filtered`
     those of step 3. `x_0`'s particles are `N` draws from `prior`.
@@ -101,6 +107,8 @@ class BootstrapPF(AbstractFilter):
       (see `jdrkf.filters._resampling`).
     - `ess_threshold`: `c ∈ [0, 1]`; `0` never resamples (sequential importance sampling).
     - `estimate`: `"weighted_mean"` or `"resampled_mean"`.
+    - `resampling_gradient`: `"score"` (default) or `"ignore"`, how gradients treat
+      resampling (below).
     - `return_particles` (static): add the weighted cloud of every step (before resampling)
       to `info` — memory `T·N·(n + 1)` per run.
     - `throw`, `outputs`: as `jdrkf.KalmanFilter`. With the default Gaussian
@@ -110,11 +118,32 @@ class BootstrapPF(AbstractFilter):
 
     `info` holds `ess` (before resampling) and `resampled` per step.
 
-    **Randomness and gradients.** All randomness comes from `key` (required; the initial
-    draw uses `split(key)[0]`, step `t` uses `split(split(key)[1], T)[t]`). The resampled
-    indices are wrapped in `lax.stop_gradient`: gradients (e.g. of `marginal_loglik`
-    w.r.t. model parameters) flow through the propagated particles and the weights but
-    ignore the resampling's dependence on the parameters, so they are biased.
+    **Randomness.** All randomness comes from `key` (required; the initial draw uses
+    `split(key)[0]`, step `t` uses `split(split(key)[1], T)[t]`).
+
+    **Gradients.** For a fixed key, gradients flow through the propagated particles (the
+    noise draws are reparametrized, e.g. `w = √Q z`) and the log-weights. The ancestor
+    indices `a_i` of a resampling are integers; with `resampling_gradient="score"` the
+    stop-gradient resampling of Ścibior & Wood (2021) gives particle `i` the log-weight
+    `−log N + ℓ̄_{a_i} − ⊥(ℓ̄_{a_i})` (`ℓ̄` the normalized log-weights before resampling,
+    `⊥` = `lax.stop_gradient`) instead of `−log N`. The added term is exactly zero, so
+    every forward value is bitwise that of `"ignore"`, but it adds to the gradient the
+    score `∇ℓ̄_{a_i}` of the ancestor's selection probability. Then:
+
+    - `∇ p̂`, with `p̂ = exp(marginal_loglik)` the (unbiased) likelihood estimate, is an
+      unbiased estimate of `∇ p(y_{1:T}; θ)`, for every scheme (each copies particle `i`
+      `N w̄_i` times on average) and any `ess_threshold` (the decision to resample is
+      not differentiated). More generally `∇ (p̂_t Σ_i w̄_t^i φ(x_t^i))` is unbiased for
+      `∇ ∫ φ(x_t) p(x_t, y_{1:t}; θ) dx_t`.
+    - `∇ marginal_loglik = ∇ p̂ / p̂` estimates the score `∇ log p(y_{1:T}; θ)`: a ratio,
+      consistent as `N → ∞` but biased at finite `N`; the same holds for gradients of the
+      self-normalized estimates (`filtered_means`, …). Its variance grows with `T`.
+
+    With `"ignore"` the resampled particles get weight `1/N` and the gradient misses the
+    resampling's dependence on `θ`: lower variance, but biased even as `N → ∞`. Without
+    resampling (`ess_threshold=0`) both are the same smooth function's gradient. (Note
+    that finite differences with a fixed key see `"ignore"`'s gradient: the indices are
+    locally constant in `θ`.)
 
     **Example:**
 
@@ -129,6 +158,7 @@ class BootstrapPF(AbstractFilter):
     resampling: str = eqx.field(default="systematic", static=True, kw_only=True)
     ess_threshold: float = eqx.field(default=0.5, static=True, kw_only=True)
     estimate: str = eqx.field(default="weighted_mean", static=True, kw_only=True)
+    resampling_gradient: str = eqx.field(default="score", static=True, kw_only=True)
     return_particles: bool = eqx.field(default=False, static=True, kw_only=True)
     throw: bool = eqx.field(default=True, static=True, kw_only=True)
 
@@ -146,6 +176,7 @@ class BootstrapPF(AbstractFilter):
             raise ValueError(f"ess_threshold must be a number in [0, 1], got {c!r}")
         if self.estimate not in _ESTIMATES:
             raise ValueError(f"estimate must be one of {list(_ESTIMATES)}, got {self.estimate!r}")
+        _check_resampling_gradient(self.resampling_gradient)
 
     def init(self, model: NonlinearModel, prior: Gaussian, key: PRNGKeyArray | None = None) -> ParticleState:
         """`N` draws from `prior` with equal weights."""
@@ -189,9 +220,18 @@ __all__ = ["BootstrapPF", "ParticleState", "particle_moments"]
 def _weigh_and_resample(flt, x, unnorm, key):
     """The end of a particle-filter step (BootstrapPF and DRParticleFilter): normalize the
     log-weights `unnorm` (log-sum-exp = the log-likelihood increment), the weighted moments,
-    the ESS, resampling with `flt.resampling` when ESS < `flt.ess_threshold`·N (indices under
-    `stop_gradient`), and the result code. Returns `(new_particles, new_log_weights,
-    log_weights, filtered, loglik, ess, resampled, result)`."""
+    the ESS, resampling with `flt.resampling` when ESS < `flt.ess_threshold`·N, and the
+    result code. With `flt.resampling_gradient == "score"` the resampled log-weights are
+    `−log N + ℓ̄_a − ⊥(ℓ̄_a)` (Ścibior & Wood 2021): `ℓ̄_a − ⊥(ℓ̄_a)` is exactly 0 in value
+    (set to 0 for a non-finite `ℓ̄_a`, which only a failed step selects). The log-weights
+    carried to the next step are then normalized in value but not in gradient. As a
+    function of `θ`, with the random numbers, indices and resampling decisions held at
+    their forward values, this is a particle filter whose resampling draws from the
+    forward weights `w̄(θ₀)` and weighs the copies by `w̄_a(θ)/w̄_a(θ₀)`, unbiased for every
+    `θ`: the next `loglik` is `log(S_k / S_{k-1})`, `S_k` its total unnormalized mass, and
+    `E[S_T] = p(y_{1:T}; θ)`, so the gradient at `θ₀` of `exp(Σ loglik)` is unbiased for
+    `∇ p(y_{1:T}; θ₀)`. Returns `(new_particles, new_log_weights, log_weights, filtered,
+    loglik, ess, resampled, result)`."""
     n_part = flt.num_particles
     loglik = logsumexp(unnorm)
     degenerate = ~jnp.isfinite(loglik)
@@ -203,8 +243,12 @@ def _weigh_and_resample(flt, x, unnorm, key):
 
     def _resample(args):
         xs, lws = args
-        idx = lax.stop_gradient(resampler(key, lws))
-        return xs[idx], jnp.full_like(lws, -math.log(n_part))
+        idx = resampler(key, lws, throw=False)  # invalid weights: the step reports nonfinite_state
+        new_lw = jnp.full_like(lws, -math.log(n_part))
+        if flt.resampling_gradient == "score":
+            sel = lws[idx]
+            new_lw = new_lw + jnp.where(jnp.isfinite(sel), sel - lax.stop_gradient(sel), 0.0)
+        return xs[idx], new_lw
 
     if flt.ess_threshold == 0.0:  # static: sequential importance sampling, no resampling code
         do_resample = jnp.asarray(False)

@@ -20,20 +20,36 @@ multinomial and residual schemes use `jnp.searchsorted` with the `method` that w
 fastest on CPU for `N = 1000` under `vmap` (see `_SEARCH_METHOD`).
 
 References: Douc, Cappé & Moulines (2005), "Comparison of resampling schemes for
-particle filtering"; the algorithms are summarized in `docs/algorithms.md` §G.
-The indices carry no gradient (they are integers): gradients through a resampling
-particle filter ignore the resampling's dependence on the weights.
+particle filtering"; see also `docs/math/particle.md`.
+
+**Invalid weights.** Log-weights are logs of non-negative weights: `-inf` is a zero
+weight, and a negative weight has no logarithm (`jnp.log` makes it NaN). Valid
+log-weights have no NaN, no `+inf` and at least one finite entry, i.e. `max ℓ` is
+finite (equivalently `logsumexp ℓ`, a particle filter's log-likelihood increment, is
+finite). Concrete invalid log-weights raise `ValueError`; traced ones (under `jit`,
+`vmap`, `grad`) give the identity indices `arange(N)` (no resampling) and, with
+`throw=True` (default), a run-time error through `eqx.error_if` (under `vmap`: if any
+row is invalid). The particle filters call the schemes with `throw=False` and report
+`RESULTS.nonfinite_state` for such a step. `normalized_weights` and `ess` return NaN.
+
+The indices carry no gradient (they are integers); `BootstrapPF` and
+`DRParticleFilter` pass the resampling's dependence on the weights to gradients through
+the weights of the resampled particles instead (`resampling_gradient`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jax.scipy.special import logsumexp
-from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
+
+from .._validation import is_concrete
 
 __all__ = ["multinomial", "systematic", "stratified", "residual", "RESAMPLERS", "normalized_weights", "ess"]
 
@@ -45,22 +61,53 @@ _SEARCH_METHOD = "scan"
 
 
 def _check_log_weights(log_weights) -> Array:
+    """Shape and dtype checks; concrete values must be valid (see the module docstring)."""
     lw = jnp.asarray(log_weights)
     if lw.ndim != 1 or lw.shape[0] == 0:
         raise ValueError(f"log_weights must have shape (N,) with N >= 1, got shape {tuple(lw.shape)}")
     if not jnp.issubdtype(lw.dtype, jnp.floating):
         raise ValueError(f"log_weights must have a floating dtype, got {lw.dtype}")
+    if is_concrete(lw):
+        a = np.asarray(lw)
+        bad = np.isnan(a) | (a == np.inf)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"log_weights[{i}] is {a[i]}: log-weights must be finite or -inf (a zero weight); "
+                             "a negative weight has no logarithm")
+        if not np.isfinite(a).any():
+            raise ValueError("log_weights are all -inf (every weight is zero): there is nothing to resample from")
     return lw
 
 
-def normalized_weights(log_weights: Float[ArrayLike, " N"]) -> Float[Array, " N"]:
-    """`w̄_i = exp(ℓ_i − logsumexp ℓ)` (sums to 1 up to rounding)."""
-    lw = jnp.asarray(log_weights)
+def _valid(lw: Array) -> Bool[Array, ""]:
+    """`max ℓ` finite: no NaN (NaN propagates through `max`), no `+inf`, not all `-inf`."""
+    return jnp.isfinite(jnp.max(lw))
+
+
+def _checked(idx: Int[Array, " N"], lw: Array, throw: bool) -> Int[Array, " N"]:
+    """The indices for valid log-weights, `arange(N)` for invalid (traced) ones, with an
+    `eqx.error_if` when `throw`."""
+    valid = _valid(lw)
+    idx = jnp.where(valid, idx, jnp.arange(idx.shape[0], dtype=idx.dtype))
+    if throw:
+        idx = eqx.error_if(idx, ~valid, "resampling: log_weights contain NaN or +inf, or are all -inf (all weights zero)")
+    return idx
+
+
+def _normalized(lw: Array) -> Array:
     return jnp.exp(lw - logsumexp(lw))
 
 
+def normalized_weights(log_weights: Float[ArrayLike, " N"]) -> Float[Array, " N"]:
+    """`w̄_i = exp(ℓ_i − logsumexp ℓ)` (sums to 1 up to rounding); all NaN for invalid
+    traced log-weights (concrete ones raise `ValueError`)."""
+    lw = _check_log_weights(log_weights)
+    return jnp.where(_valid(lw), _normalized(lw), jnp.nan)
+
+
 def ess(log_weights: Float[ArrayLike, " N"]) -> Float[Array, ""]:
-    """Effective sample size `1 / Σ w̄_i²` of (unnormalized) log-weights."""
+    """Effective sample size `1 / Σ w̄_i²` of (unnormalized) log-weights; NaN for invalid
+    traced log-weights (concrete ones raise `ValueError`)."""
     w = normalized_weights(log_weights)
     return 1.0 / jnp.sum(w * w)
 
@@ -145,21 +192,23 @@ def _search(c: Array, u: Array) -> Int[Array, " M"]:
     return jnp.clip(idx, 0, c.shape[0] - 1).astype(jnp.int32)
 
 
-def multinomial(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+def multinomial(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"], *, throw: bool = True) -> Int[Array, " N"]:
     """Multinomial resampling: `N` i.i.d. uniforms `u_j ~ U[0, 1)` by inverse CDF.
 
-    The scheme of the authors' MATLAB particle filter (seed 003). Indices are in the
-    order of the uniforms (not sorted)."""
+    The scheme of the MATLAB particle filter of Wang (2022). Indices are in the
+    order of the uniforms (not sorted). Invalid log-weights and `throw`: see the module
+    docstring."""
     lw = _check_log_weights(log_weights)
     u = _uniform(key, lw.shape, lw.dtype)
-    return _search(_cumulative(lw), u)
+    return _checked(_search(_cumulative(lw), u), lw, throw)
 
 
-def systematic(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+def systematic(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"], *, throw: bool = True) -> Int[Array, " N"]:
     """Systematic resampling: `u_j = (j + U) / N`, one `U ~ U[0, 1)`.
 
     Particle `i` gets `⌈N c_i − U⌉ − ⌈N c_{i−1} − U⌉ ∈ {⌊N w_i⌋, ⌈N w_i⌉}` copies
-    (computed in closed form, `O(N)`). Indices are sorted."""
+    (computed in closed form, `O(N)`). Indices are sorted. Invalid log-weights and
+    `throw`: see the module docstring."""
     lw = _check_log_weights(log_weights)
     n = lw.shape[0]
     c = _cumulative(lw)
@@ -167,14 +216,15 @@ def systematic(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Ar
     below = jnp.clip(jnp.ceil(n * c - u0), 0, n).astype(jnp.int32)  # #{j : (j + U)/N < c_i}
     # c_i = 1: all N uniforms lie below (N − U rounds to N − 1 in float32 for large N).
     below = jnp.where(c >= 1, n, below)
-    return _indices_from_cumulative(below)
+    return _checked(_indices_from_cumulative(below), lw, throw)
 
 
-def stratified(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+def stratified(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"], *, throw: bool = True) -> Int[Array, " N"]:
     """Stratified resampling: `u_j = (j + U_j) / N`, independent `U_j ~ U[0, 1)`.
 
     `#{j : u_j < c} = ⌊N c⌋ + [U_{⌊N c⌋} < N c − ⌊N c⌋]`, so the counts cost one
-    gather (`O(N)`). Indices are sorted."""
+    gather (`O(N)`). Indices are sorted. Invalid log-weights and `throw`: see the module
+    docstring."""
     lw = _check_log_weights(log_weights)
     n = lw.shape[0]
     c = _cumulative(lw)
@@ -184,17 +234,17 @@ def stratified(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Ar
     fi = f.astype(jnp.int32)
     extra = (fi < n) & (us[jnp.minimum(fi, n - 1)] < x - f)
     below = jnp.where(c >= 1, n, fi + extra.astype(jnp.int32))
-    return _indices_from_cumulative(below)
+    return _checked(_indices_from_cumulative(below), lw, throw)
 
 
-def residual(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Array, " N"]:
+def residual(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"], *, throw: bool = True) -> Int[Array, " N"]:
     """Residual resampling: `⌊N w_i⌋` deterministic copies, then `R = N − Σ⌊N w_i⌋`
     multinomial draws from the residual weights `N w_i − ⌊N w_i⌋` (static shapes:
-    `N` draws are made and only the first `R` are kept). Indices are sorted."""
+    `N` draws are made and only the first `R` are kept). Indices are sorted. Invalid
+    log-weights and `throw`: see the module docstring."""
     lw = _check_log_weights(log_weights)
     n = lw.shape[0]
-    w = normalized_weights(lw)
-    nw = n * w
+    nw = n * _normalized(lw)
     floor = jnp.floor(nw)
     det = floor.astype(jnp.int32)
     det = jnp.minimum(det, n - jnp.concatenate([jnp.zeros((1,), jnp.int32), _count_cumsum(det)[:-1]]))  # Σ ≤ N
@@ -207,10 +257,10 @@ def residual(key: PRNGKeyArray, log_weights: Float[ArrayLike, " N"]) -> Int[Arra
     draws = _search(_cumulative(lr), _uniform(key, (n,), lw.dtype))
     keep = (jnp.arange(n) < rem).astype(jnp.int32)
     counts = det + jnp.zeros(n, jnp.int32).at[draws].add(keep)
-    return _indices_from_cumulative(jnp.clip(_count_cumsum(counts), 0, n))
+    return _checked(_indices_from_cumulative(jnp.clip(_count_cumsum(counts), 0, n)), lw, throw)
 
 
-RESAMPLERS: dict[str, Callable[[PRNGKeyArray, Array], Array]] = {
+RESAMPLERS: dict[str, Callable[..., Int[Array, " N"]]] = {
     "multinomial": multinomial,
     "systematic": systematic,
     "stratified": stratified,
