@@ -1,6 +1,6 @@
 """EM estimation of the nominal noise covariances of a linear-Gaussian model.
 
-The protocol of Jang, Hakobyan & Yang (seed 004, `main.py`): pykalman's
+The protocol of Jang, Hakobyan & Yang (2025; their code's `main.py`): pykalman's
 `KalmanFilter.em` with `em_vars` = transition/observation covariances and offsets,
 run one iteration at a time from `Q = I`, `R = I` until the log-likelihood gain is
 at most `1e-4` (at most 100 iterations), then symmetrized with the smallest
@@ -21,7 +21,10 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from . import linalg
+from ._gaussian import Gaussian
+from ._models import LinearModel
 from ._validation import as_float_array, check_covariance, check_shape, is_concrete
+from .filters import KalmanFilter, smooth
 
 
 __all__ = ["EMResult", "em_noise_covariances"]
@@ -57,53 +60,28 @@ class EMResult(eqx.Module):
 
 
 def _smoother_statistics(f, h, ys, drive, m0, p0, q, r, b, d):
-    """Kalman filter + RTS smoother in pykalman's convention (`y_0` measures `x_0`).
+    """Kalman filter + RTS smoother (`jdrkf.smooth`) in pykalman's convention (`y_0`
+    measures `x_0`).
 
-    Returns the log-likelihood, smoothed means `(T, n)` and covariances `(T, n, n)`
-    and the lag-one cross covariances `Cov(x_{t+1}, x_t | y_{0:T-1}) = P^s_{t+1} J_tᵀ`
-    `(T-1, n, n)`, `J_t = P_{t|t} Fᵀ P_{t+1|t}⁻¹` (the smoother gain).
+    pykalman's `x_t` is `x_{t+1}` of a time-varying `jdrkf.LinearModel` whose first
+    transition (`F = 0`, process noise `N(m0, p0)`) makes the predicted law of its `x_1`
+    the initial law `N(m0, p0)`; later transitions are `x ↦ F x + B u + b + w`.
+    Returns the log-likelihood, smoothed means `(T, n)` and covariances `(T, n, n)` and
+    the lag-one cross covariances `Cov(x_{t+1}, x_t | y_{0:T-1})` `(T-1, n, n)`.
     """
     n = m0.shape[0]
-    eye = jnp.eye(n, dtype=m0.dtype)
-    log2pi = jnp.asarray(ys.shape[1] * math.log(2 * math.pi), m0.dtype)
-
-    def correct(mean, cov, y):
-        innov = y - d - h @ mean
-        chol_s = linalg.cholesky(linalg.symmetrize(h @ cov @ h.T + r))
-        gain = linalg.cho_solve(chol_s, h @ cov).T
-        a = eye - gain @ h
-        cov_f = linalg.symmetrize(a @ cov @ a.T + gain @ r @ gain.T)  # Joseph form
-        quad = innov @ linalg.cho_solve(chol_s, innov)
-        ll = -0.5 * (quad + 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_s))) + log2pi)
-        return mean + gain @ innov, cov_f, ll
-
-    mf0, pf0, ll0 = correct(m0, p0, ys[0])
-
-    def forward(carry, inp):
-        mean, cov = carry
-        y, c = inp
-        mp = f @ mean + c + b
-        pp = linalg.symmetrize(f @ cov @ f.T + q)
-        mf, pf, ll = correct(mp, pp, y)
-        return (mf, pf), (mp, pp, mf, pf, ll)
-
-    _, (mps, pps, mfs, pfs, lls) = lax.scan(forward, (mf0, pf0), (ys[1:], drive))
-    mfs = jnp.concatenate([mf0[None], mfs])
-    pfs = jnp.concatenate([pf0[None], pfs])
-    loglik = ll0 + jnp.sum(lls)
-
-    def backward(carry, inp):
-        ms_next, ps_next = carry
-        mf, pf, mp_next, pp_next = inp
-        gain = linalg.psd_solve(pp_next, f @ pf).T  # J_t = P_{t|t} Fᵀ P_{t+1|t}⁻¹
-        ms = mf + gain @ (ms_next - mp_next)
-        ps = linalg.symmetrize(pf + gain @ (ps_next - pp_next) @ gain.T)
-        return (ms, ps), (ms, ps, ps_next @ gain.T)
-
-    _, (mss, pss, cross) = lax.scan(backward, (mfs[-1], pfs[-1]), (mfs[:-1], pfs[:-1], mps, pps), reverse=True)
-    mss = jnp.concatenate([mss, mfs[-1][None]])
-    pss = jnp.concatenate([pss, pfs[-1][None]])
-    return loglik, mss, pss, cross
+    num_steps = ys.shape[0]
+    zero = jnp.zeros((1, n, n), m0.dtype)
+    model = LinearModel(
+        jnp.concatenate([zero, jnp.broadcast_to(f, (num_steps - 1, n, n))]),
+        h,
+        jnp.concatenate([p0[None], jnp.broadcast_to(q, (num_steps - 1, n, n))]),
+        r,
+        process_mean=jnp.concatenate([m0[None], b + drive]),
+        noise_mean=d,
+    )
+    res = smooth(KalmanFilter(throw=False), model, Gaussian(m0, p0), ys)
+    return res.marginal_loglik, res.smoothed_means, res.smoothed_covariances, res.smoothed_cross_covariances[1:]
 
 
 def _m_step(f, h, ys, drive, mss, pss, cross, b, d, estimate_offsets, offset_update):

@@ -1,4 +1,4 @@
-"""EM estimation of nominal noise covariances (seed 004's protocol) against an
+"""EM estimation of nominal noise covariances (Jang, Hakobyan & Yang's protocol) against an
 independent NumPy reference: its E-step conditions the *joint* Gaussian of
 `(x_{0:T-1}, y_{0:T-1})` in one batch (no Kalman/RTS recursion), its M-step is plain
 loops, and its driver is the seed's `main.py` loop."""
@@ -99,7 +99,7 @@ def ref_em_step(F, H, ys, drive, params, smoothed, estimate_offsets=True, offset
 
 
 def enforce_positive_definiteness(S, eps=1e-4):
-    # seed 004, main.py
+    # as in Jang, Hakobyan & Yang's main.py
     S = (S + S.T) / 2
     lam = np.min(np.linalg.eigvalsh(S))
     if lam < eps:
