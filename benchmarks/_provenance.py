@@ -67,6 +67,14 @@ def versions(packages=("jax", "jaxlib", "equinox", "cvxpy", "clarabel", "numpy",
     return out
 
 
+def portable_path(path: str) -> str:
+    """`path` as recorded in a result file: relative to the repository root when inside it,
+    else only its last component (records must not carry a machine's directories)."""
+    path = os.path.abspath(path)
+    inside = os.path.commonpath([path, ROOT]) == ROOT
+    return os.path.relpath(path, ROOT) if inside else os.path.basename(path)
+
+
 def parse_size(s: str) -> tuple[int, int]:
     n, m = s.lower().split("x")
     return int(n), int(m)
@@ -74,8 +82,13 @@ def parse_size(s: str) -> tuple[int, int]:
 
 def set_platform(name: str) -> None:
     """Select the JAX platform of this benchmark process (`"cpu"` or `"gpu"`) before JAX
-    starts; `"gpu"` fails early with a clear message when no GPU backend is available."""
+    starts, with jdrkf's large CPU pool (`jdrkf.use_large_cpu_pool`: jaxlib 0.10's batched
+    LAPACK can deadlock otherwise); `"gpu"` fails early with a clear message when no GPU
+    backend is available."""
     os.environ["JAX_PLATFORMS"] = "cuda" if name == "gpu" else "cpu"
+    import jdrkf
+
+    jdrkf.use_large_cpu_pool()
     if "jax" in sys.modules:  # imported already (cvxpy imports it): JAX read the variable then
         sys.modules["jax"].config.update("jax_platforms", os.environ["JAX_PLATFORMS"])
     if name == "gpu":

@@ -1,9 +1,7 @@
 """jdrkf: JAX-accelerated, differentiable robust and distributionally robust state estimators."""
 
-import importlib.metadata
-
-from . import _cpu_pool as _cpu_pool  # first: sets PJRT_NPROC before any JAX computation (see its docstring)
 from . import linalg as linalg, metrics as metrics, sets as sets, tuning as tuning
+from ._cpu_pool import use_large_cpu_pool as use_large_cpu_pool
 from ._gaussian import Gaussian as Gaussian
 from ._models import LinearModel as LinearModel
 from ._multisensor import MultiSensorModel as MultiSensorModel
@@ -22,6 +20,7 @@ from ._noise import (
     UQuadraticNoise as UQuadraticNoise,
 )
 from ._simulate import Trajectories as Trajectories, simulate as simulate
+from ._version import __version__ as __version__
 from .filters import (
     AbstractFilter as AbstractFilter,
     BCOTKF as BCOTKF,
@@ -39,9 +38,11 @@ from .filters import (
     RBKF as RBKF,
     RESULTS as RESULTS,
     RiskSensitiveKF as RiskSensitiveKF,
+    RTSSmoother as RTSSmoother,
     STKF as STKF,
     STKF_AR1 as STKF_AR1,
     STKF_AR2 as STKF_AR2,
+    SmootherResult as SmootherResult,
     SteadyStateDR as SteadyStateDR,
     SteadyStateDRKF as SteadyStateDRKF,
     SteadyStateGain as SteadyStateGain,
@@ -54,13 +55,9 @@ from .filters import (
     WassersteinDRKF as WassersteinDRKF,
     WassersteinKF as WassersteinKF,
     irls_update as irls_update,
+    rts_backward as rts_backward,
+    smooth as smooth,
     predict as predict,
     theta_max as theta_max,
     update as update,
 )
-
-
-try:
-    __version__ = importlib.metadata.version("jdrkf")
-except importlib.metadata.PackageNotFoundError:  # running from a source tree
-    __version__ = "0.0.0"

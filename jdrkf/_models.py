@@ -6,7 +6,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._validation import as_float_array, check_covariance, check_shape, check_time_axis
+from ._gaussian import Gaussian
+from ._validation import as_float_array, check_covariance, check_shape, check_time_axis, is_concrete
 
 
 _BASE_NDIM = {"F": 2, "H": 2, "Q": 2, "R": 2, "G": 2, "B": 2, "process_mean": 1, "noise_mean": 1}
@@ -131,6 +132,139 @@ class LinearModel(eqx.Module):
         p = self.B.shape[-1]
         if inputs.ndim != 2 or inputs.shape != (num_steps, p):
             raise ValueError(f"inputs has shape {tuple(inputs.shape)} but expected ({num_steps}, {p}) (T steps, B has {p} columns)")
+
+    @classmethod
+    def from_dynamax(cls, params, num_timesteps: int | None = None) -> tuple[LinearModel, Gaussian]:
+        r"""Convert dynamax's `ParamsLGSSM` into a model and the prior of `x_0`.
+
+        dynamax conditions its first state on the first observation: `params.initial` is
+        the law of the state that `emissions[0]` observes, and the dynamics entry `t ≥ 1`
+        maps that index-`(t−1)` state to index `t` (entry 0 is never used). jdrkf predicts
+        before every update. The conversion therefore makes the first step the identity,
+        `x_1 = x_0` (`F_0 = I`, `Q_0 = 0`, no bias or input), and returns `params.initial`
+        as the law of `x_0`; steps `t ≥ 1` carry dynamax's entries `t`. Then `x_{t+1}` is
+        dynamax's state `t`, the same `ys` and `inputs` arrays feed both libraries, and
+        `KalmanFilter()(model, prior, ys)` gives `lgssm_filter(params, ys)`'s filtered
+        means and marginal log-likelihood. `F, Q, process_mean` (and `B`) get a time axis
+        of length `num_timesteps` even for time-invariant `params`; `model.at(1)` is then
+        dynamax's time-invariant model, to be started from `update(model.at(1), prior, ys[0], 0)`
+        on `ys[1:]` (and `inputs[1:]`).
+
+        Mapping: `F = weights`, `G = I`, `Q = cov`, `process_mean = bias`,
+        `B = input_weights` (none when it has no columns), `H, R` as given (a diagonal
+        `cov` of shape `(m,)` or `(T, m)` becomes `diag(cov)`), `noise_mean = bias`.
+        jdrkf has no input term in the measurement equation, so `params.emissions.input_weights`
+        must be zero.
+
+        **Arguments:**
+
+        - `params`: a dynamax `ParamsLGSSM` (or any object with its fields) holding arrays.
+        - `num_timesteps`: the number of observations `T`; required when no field of
+          `params` has a time axis, else it must match that axis.
+
+        **Returns:** `(model, prior)`.
+        """
+        try:
+            init, dyn, emi = params.initial, params.dynamics, params.emissions
+        except AttributeError as e:
+            raise ValueError(f"params must be a dynamax ParamsLGSSM, got {type(params).__name__}") from e
+        mean = as_float_array("params.initial.mean", init.mean, (1,))
+        cov = as_float_array("params.initial.cov", init.cov, (2,))
+        F = as_float_array("params.dynamics.weights", dyn.weights, (2, 3))
+        b = as_float_array("params.dynamics.bias", dyn.bias, (1, 2))
+        B = as_float_array("params.dynamics.input_weights", dyn.input_weights, (2, 3))
+        Q = as_float_array("params.dynamics.cov", dyn.cov, (2, 3))
+        H = as_float_array("params.emissions.weights", emi.weights, (2, 3))
+        d = as_float_array("params.emissions.bias", emi.bias, (1, 2))
+        D = as_float_array("params.emissions.input_weights", emi.input_weights, (2, 3))
+        R = as_float_array("params.emissions.cov", emi.cov, (1, 2, 3))
+        if R.ndim == 1 or (R.ndim == 2 and R.shape[0] != R.shape[1]):  # dynamax's diagonal forms
+            R = R[..., None, :] * jnp.eye(R.shape[-1], dtype=R.dtype)
+        if D.size and not (is_concrete(D) and not jnp.any(D)):
+            raise ValueError(
+                "params.emissions.input_weights must be zero: jdrkf models have no input term in the "
+                "measurement equation"
+            )
+        steps = None
+        for name, x, base in (("dynamics.weights", F, 2), ("dynamics.bias", b, 1), ("dynamics.input_weights", B, 2),
+                              ("dynamics.cov", Q, 2), ("emissions.weights", H, 2), ("emissions.bias", d, 1),
+                              ("emissions.cov", R, 2)):
+            steps = check_time_axis("params." + name, x, base, steps)
+        if num_timesteps is None:
+            if steps is None:
+                raise ValueError("num_timesteps is required: no field of params has a time axis")
+            num_timesteps = steps
+        elif steps is not None and num_timesteps != steps:
+            raise ValueError(f"num_timesteps is {num_timesteps} but the time-varying fields of params have length {steps}")
+        if num_timesteps < 1:
+            raise ValueError(f"num_timesteps must be at least 1, got {num_timesteps}")
+
+        def first_step(x, base, value):
+            x = x if x.ndim == base + 1 else jnp.broadcast_to(x, (num_timesteps,) + x.shape)
+            return x.at[0].set(value)
+
+        model = cls(
+            F=first_step(F, 2, jnp.eye(F.shape[-1], dtype=F.dtype)),
+            H=H,
+            Q=first_step(Q, 2, 0.0),
+            R=R,
+            B=first_step(B, 2, 0.0) if B.shape[-1] else None,
+            process_mean=first_step(b, 1, 0.0),
+            noise_mean=d,
+        )
+        return model, Gaussian(mean, cov)
+
+    def to_dynamax(self, prior: Gaussian, inputs: Float[ArrayLike, "T p"] | None = None):
+        r"""Convert to dynamax's `ParamsLGSSM` (needs dynamax: `pip install 'jdrkf[bench]'`).
+
+        The inverse time shift of `from_dynamax`: dynamax's initial law is that of `x_1`
+        before `y_1`, the prediction of `prior` through step 0,
+        `μ_1 = F_0 m_0 + B_0 u_1 + G_0 μ_{w,0}`, `Σ_1 = F_0 P_0 F_0ᵀ + G_0 Q_0 G_0ᵀ`; dynamax
+        ignores dynamics entry 0 and reads entry `t ≥ 1` for `x_t → x_{t+1}`, as jdrkf does.
+        Dynamics: `weights = F`, `bias = G μ_w`, `cov = G Q Gᵀ`, `input_weights = B` (or
+        `n × 0`); emissions: `weights = H`, `bias = noise_mean`, `cov = R`, zero input
+        weights. `lgssm_filter(params, ys, inputs)` then filters like jdrkf's `KalmanFilter`
+        on `(model, prior, ys, inputs=inputs)`. Time-varying fields stay time-varying.
+
+        **Arguments:**
+
+        - `prior`: the law of `x_0`.
+        - `inputs`: `(T, p)`, the control sequence when the model has `B` (its first row
+          enters `μ_1`); otherwise `None`.
+        """
+        try:
+            from dynamax.linear_gaussian_ssm import ParamsLGSSM, ParamsLGSSMDynamics, ParamsLGSSMEmissions, ParamsLGSSMInitial
+        except ImportError as e:
+            raise ImportError("LinearModel.to_dynamax needs dynamax: pip install 'jdrkf[bench]' (or pip install dynamax)") from e
+        from .filters._kalman import predict
+
+        if not isinstance(prior, Gaussian) or prior.dim != self.state_dim:
+            raise ValueError(f"prior must be a Gaussian of dimension {self.state_dim}, got {prior!r}")
+        u1 = None
+        if self.B is None:
+            if inputs is not None:
+                raise ValueError("inputs were given but the model has no control matrix B")
+        else:
+            if inputs is None:
+                raise ValueError(f"the model has a control matrix B of shape {tuple(self.B.shape)} but no inputs were given")
+            inputs = as_float_array("inputs", inputs, (2,))
+            check_shape("inputs", inputs, (None, self.B.shape[-1]), f"since B has {self.B.shape[-1]} columns")
+            u1 = inputs[0]
+        first = predict(self, prior, 0, u1)
+        p = 0 if self.B is None else self.B.shape[-1]
+        dtype = self.F.dtype
+        return ParamsLGSSM(
+            initial=ParamsLGSSMInitial(mean=first.mean, cov=first.cov),
+            dynamics=ParamsLGSSMDynamics(
+                weights=self.F,
+                bias=(self.G @ self.process_mean[..., None])[..., 0],
+                input_weights=jnp.zeros((self.state_dim, 0), dtype) if self.B is None else self.B,
+                cov=self.G @ self.Q @ jnp.swapaxes(self.G, -1, -2),
+            ),
+            emissions=ParamsLGSSMEmissions(
+                weights=self.H, bias=self.noise_mean, input_weights=jnp.zeros((self.obs_dim, p), dtype), cov=self.R
+            ),
+        )
 
     def check_horizon(self, num_steps: int) -> None:
         """Eager check that a time-varying model covers `num_steps` steps."""

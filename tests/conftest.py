@@ -1,11 +1,14 @@
 import gc
-import os
-
-os.environ.setdefault("PJRT_NPROC", "16")  # before any JAX computation: see jdrkf/_cpu_pool.py
 
 import jax
 import numpy as np
 import pytest
+
+import jdrkf
+
+# Test configuration, before any JAX computation: a large CPU pool against jaxlib 0.10's
+# batched-LAPACK deadlock (see jdrkf.use_large_cpu_pool). Subprocesses inherit it.
+jdrkf.use_large_cpu_pool()
 
 
 jax.config.update("jax_enable_x64", True)

@@ -14,11 +14,16 @@ of the runs of the workload below hang within 6 s; `OPENBLAS_NUM_THREADS=1` and
 The workaround is to give the pool more threads than there can be concurrent LAPACK
 calls: `PJRT_NPROC` (read when JAX creates its CPU client, i.e. at the first
 computation, so setting it after `import jax` but before any computation works).
-`import jdrkf` sets it (jdrkf/_cpu_pool.py). The test runs the workload in a child
-process that imports jdrkf with `PJRT_NPROC` unset, under a timeout, and checks the
-result against NumPy.
+`import jdrkf` leaves the environment alone; `jdrkf.use_large_cpu_pool()` is the opt-in
+(jdrkf/_cpu_pool.py; the test suite applies it in conftest.py, the CLI in `main`). The
+tests run child processes with `PJRT_NPROC` and `NPROC` unset: the workload under a
+timeout after the opt-in, checked against NumPy; a bare `import jdrkf`, which must change
+neither `os.environ` nor JAX's configuration nor create JAX's backend (so the opt-in
+after it still works); and an opt-in after the first computation, which must warn and
+change nothing.
 """
 
+import json
 import os
 import subprocess
 import sys
@@ -26,13 +31,17 @@ import textwrap
 
 import pytest
 
+from jdrkf import _cpu_pool
+
 
 _CHILD = textwrap.dedent(
     """
     import os
     import time
 
-    import jdrkf  # noqa: F401  (sets PJRT_NPROC on affected jaxlib versions)
+    import jdrkf
+
+    jdrkf.use_large_cpu_pool()  # before any JAX computation
 
     import numpy as np
     import jax
@@ -103,11 +112,11 @@ _CHILD = textwrap.dedent(
 )
 
 
-def _run_child(work_s: float, timeout: float) -> str:
+def _run_child(code: str, timeout: float, **env_vars: str) -> str:
     env = {k: v for k, v in os.environ.items() if k not in ("PJRT_NPROC", "NPROC")}
-    env.update(JAX_PLATFORMS="cpu", WORK_S=str(work_s))
+    env.update(JAX_PLATFORMS="cpu", **env_vars)
     proc = subprocess.run(
-        [sys.executable, "-c", _CHILD],
+        [sys.executable, "-c", code],
         env=env,
         capture_output=True,
         text=True,
@@ -117,17 +126,88 @@ def _run_child(work_s: float, timeout: float) -> str:
     return proc.stdout
 
 
-def test_vmapped_lapack_completes_after_importing_jdrkf():
-    """`import jdrkf` enlarges the pool (jdrkf/_cpu_pool.py), so the workload (about half
-    of the runs hang within 6 s without it on 2 cores) finishes."""
+def test_vmapped_lapack_completes_with_the_opt_in():
+    """`jdrkf.use_large_cpu_pool()` enlarges the pool, so the workload (about half of the
+    runs hang within 6 s without it on 2 cores) finishes."""
     try:
-        out = _run_child(work_s=4.0, timeout=120.0)
+        out = _run_child(_CHILD, timeout=120.0, WORK_S="4.0")
     except subprocess.TimeoutExpired:
-        pytest.fail("batched LAPACK under vmap deadlocked (child timed out) after import jdrkf")
+        pytest.fail("batched LAPACK under vmap deadlocked (child timed out) after jdrkf.use_large_cpu_pool()")
     line = [s for s in out.splitlines() if s.startswith("DONE")]
     assert line, out
     fields = dict(kv.split("=") for kv in line[0].split()[1:])
     assert int(fields["calls"]) >= 5
     assert float(fields["err"]) < 1e-10
     pool = int(fields["pool"])
-    assert pool == -1 or pool == 0 or pool >= 16, f"PJRT_NPROC ignored: {pool} XLAEigen threads"
+    if _cpu_pool.affected():
+        assert pool == -1 or pool == 0 or pool >= 16, f"PJRT_NPROC ignored: {pool} XLAEigen threads"
+
+
+_IMPORT_CHILD = textwrap.dedent(
+    """
+    import json
+    import os
+
+    import equinox, jax, jaxtyping, numpy, optax  # jdrkf's dependencies (jax itself sets TF_CPP_* variables)
+    from jax._src import xla_bridge
+
+    env, config = dict(os.environ), dict(jax.config.values)
+    import jdrkf
+    print(json.dumps({
+        "env": sorted(k for k in set(env) | set(os.environ) if env.get(k) != os.environ.get(k)),
+        "config": sorted(k for k in set(config) | set(jax.config.values) if config.get(k) != jax.config.values.get(k)),
+        "backend": xla_bridge.backends_are_initialized(),
+    }))
+    """
+)
+
+
+def test_import_changes_no_environment_or_config():
+    out = json.loads(_run_child(_IMPORT_CHILD, timeout=120.0).strip().splitlines()[-1])
+    assert out == {"env": [], "config": [], "backend": False}
+
+
+_LATE_CHILD = textwrap.dedent(
+    """
+    import os
+    import warnings
+
+    import jax.numpy as jnp
+    import jdrkf
+
+    jnp.ones(2).block_until_ready()  # JAX's CPU client exists from here on
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        jdrkf.use_large_cpu_pool()
+    print("WARNED", any(issubclass(w.category, RuntimeWarning) and "no effect" in str(w.message) for w in caught))
+    print("SET", "PJRT_NPROC" in os.environ)
+    """
+)
+
+
+@pytest.mark.skipif(not _cpu_pool.affected(), reason="the opt-in is a no-op on this jaxlib")
+def test_opt_in_after_the_first_computation_warns_and_changes_nothing():
+    out = _run_child(_LATE_CHILD, timeout=120.0)
+    assert "WARNED True" in out and "SET False" in out, out
+
+
+_CLI_CHILD = textwrap.dedent(
+    """
+    import contextlib
+    import io
+    import os
+
+    from jdrkf import cli
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert cli.main(["list"]) == 0
+    print("PJRT_NPROC", os.environ.get("PJRT_NPROC"))
+    """
+)
+
+
+@pytest.mark.skipif(not _cpu_pool.affected(), reason="the opt-in is a no-op on this jaxlib")
+def test_command_line_applies_the_opt_in():
+    out = _run_child(_CLI_CHILD, timeout=120.0)
+    line = [s for s in out.splitlines() if s.startswith("PJRT_NPROC")]
+    assert line and line[0].split()[1] != "None" and int(line[0].split()[1]) >= 16, out
