@@ -15,6 +15,7 @@ from . import metrics as _metrics
 from ._gaussian import Gaussian
 from ._models import LinearModel
 from ._simulate import Trajectories
+from ._validation import check_count
 from .filters._base import AbstractFilter, FilterResult, RESULTS, with_outputs
 
 
@@ -25,7 +26,7 @@ class Clairvoyant(eqx.Module):
       matrices when the simulation perturbed them;
     - `clean=True`: the outlier-free observations.
 
-    Seed 000's TMKF is `Clairvoyant(KalmanFilter())`.
+    Wang & Ye's (2022) TMKF is `Clairvoyant(KalmanFilter())`.
     """
 
     filter: AbstractFilter
@@ -109,8 +110,7 @@ def montecarlo(
     for name, flt in filters.items():
         if not isinstance(flt, (AbstractFilter, Clairvoyant)):
             raise ValueError(f"filters[{name!r}] must be a jdrkf filter or Clairvoyant(filter), got {type(flt).__name__}")
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+    chunk_size = check_count("chunk_size", chunk_size)
     metrics = dict(DEFAULT_METRICS if metrics is None else metrics)
     true_model = model if true_model is None else true_model
     num_runs = trajectories.num_runs
@@ -136,4 +136,6 @@ def montecarlo(
         data = jax.device_put(data, sharding)
         out = _run_chunk_jit(dict(filters), model, true_model, prior, data[0], data[1], metrics, missing, clean_missing)
         pieces.append(jax.tree.map(lambda a: np.asarray(a)[: stop - start], out))
-    return jax.tree.map(lambda *a: np.concatenate(a, axis=0), *pieces)
+    out = jax.tree.map(lambda *a: np.concatenate(a, axis=0), *pieces)
+    # JAX flattens dicts in sorted key order, so its outputs are sorted: restore the caller's order.
+    return {name: {m: out[name][m] for m in (*metrics, "success")} for name in filters}

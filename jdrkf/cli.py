@@ -1,4 +1,10 @@
-"""Command line: `jdrkf list`, `jdrkf reproduce NAME [--runs N] [--seed S] [--json PATH] [--plots DIR]`."""
+"""Command line: `jdrkf list`, `jdrkf reproduce NAME [--runs N | --quick] [--seed S] [--json PATH] [--plots DIR]`.
+
+Everything that can be checked without computing is checked first — argument ranges,
+that the output paths are writable, that the optional dependencies are importable —
+and a failure is one line on stderr with exit status 2. JAX and the experiments are
+imported only after these checks, inside `reproduce`/`list`.
+"""
 
 from __future__ import annotations
 
@@ -6,29 +12,123 @@ import argparse
 import json
 import pathlib
 import sys
+import tempfile
 import time
+
+SEED_LIMIT = 2**32
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line instead of argparse's usage block
+        self.exit(2, f"jdrkf: error: {message} (see `{self.prog} --help`)\n")
+
+
+def _int_at_least(lo: int, hi: int | None = None):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < lo or (hi is not None and value >= hi):
+            raise argparse.ArgumentTypeError(f"must be {'at least ' + str(lo) if hi is None else f'in [{lo}, {hi})'}, got {value}")
+        return value
+
+    return parse
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="jdrkf", description="Robust and distributionally robust state estimation in JAX.")
+    p = _Parser(prog="jdrkf", description="Robust and distributionally robust state estimation in JAX.")
     sub = p.add_subparsers(dest="command", required=True)
-    sub.add_parser("list", help="list the registered paper reproductions")
+    sub.add_parser("list", help="list the registered paper reproductions with their default run counts")
     r = sub.add_parser("reproduce", help="run a paper reproduction and print paper vs ours")
     r.add_argument("name", help="experiment name (see `jdrkf list`)")
-    r.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default: the experiment's)")
-    r.add_argument("--seed", type=int, default=0, help="PRNG seed of the simulation (default 0)")
-    r.add_argument("--json", type=pathlib.Path, default=None, help="write the table as JSON to this path")
+    r.add_argument("--runs", type=_int_at_least(2), default=None,
+                   help="Monte Carlo runs, at least 2 (default: the experiment's; see `jdrkf list`)")
+    r.add_argument("--quick", action="store_true",
+                   help="a small run count and problem size (minutes, not hours): a smoke test, not a reproduction")
+    r.add_argument("--seed", type=_int_at_least(0, SEED_LIMIT), default=0, help="PRNG seed of the simulation (default 0)")
+    r.add_argument("--json", type=pathlib.Path, default=None, help="write the report as JSON to this file")
     r.add_argument("--plots", type=pathlib.Path, default=None, help="write figures into this directory (needs matplotlib)")
     r.add_argument(
         "--precision", choices=("float64", "float32"), default="float64",
         help="floating-point precision of the whole run (default float64; this CLI process sets jax_enable_x64)",
     )
-    r.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="progress bars on stderr (default: only when stderr is a terminal)")
     return p
 
 
+def _fail(message: str) -> int:
+    print(f"jdrkf: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _check_file(path: pathlib.Path) -> str | None:
+    """Why `path` cannot be written as a file (None if it can): creates missing parent
+    directories and opens the file for appending; a file that did not exist is removed again."""
+    if path.is_dir():
+        return "it is a directory"
+    existed = path.exists()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a"):
+            pass
+    except OSError as e:
+        return e.strerror or str(e)
+    if not existed:
+        path.unlink()
+    return None
+
+
+def _check_dir(path: pathlib.Path) -> str | None:
+    """Why no file can be written into directory `path` (None if it can); creates it."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as e:
+        return e.strerror or str(e)
+    return None
+
+
+def _validate(args) -> str | None:
+    """The first problem of a `reproduce` command line that shows before computing."""
+    if args.json is not None and (why := _check_file(args.json)):
+        return f"cannot write --json {args.json}: {why}"
+    if args.plots is not None:
+        if (why := _check_dir(args.plots)):
+            return f"cannot write --plots into {args.plots}: {why}"
+        try:
+            import matplotlib.figure  # noqa: F401
+        except ImportError as e:
+            return f"--plots needs matplotlib ({e}); install it with pip install 'jdrkf[cli]'"
+    if args.progress:
+        try:
+            import tqdm  # noqa: F401
+        except ImportError as e:
+            return f"--progress needs tqdm ({e}); install it with pip install 'jdrkf[cli]'"
+    return None
+
+
+def _progress_wanted(flag: bool | None) -> bool:
+    if flag is not None:
+        return flag
+    if not sys.stderr.isatty():
+        return False
+    try:
+        import tqdm  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
+    from ._cpu_pool import use_large_cpu_pool
+
+    use_large_cpu_pool()  # an application may size its CPU pool; before any JAX computation (jaxlib 0.10 deadlock)
     args = _parser().parse_args(argv)
+    if args.command == "reproduce" and (problem := _validate(args)):
+        return _fail(problem)
     if args.command == "reproduce":
         # The CLI is an application: it may choose the precision of its own process.
         # The library itself never changes jax_enable_x64.
@@ -39,34 +139,24 @@ def main(argv: list[str] | None = None) -> int:
     from . import experiments
 
     if args.command == "list":
+        print(f"{'name':24s} {'runs':>5s} {'quick':>5s}  description")
         for name, exp in sorted(experiments.EXPERIMENTS.items()):
-            print(f"{name:24s} {exp.description}")
+            print(f"{name:24s} {exp.default_runs:5d} {exp.quick.get('runs', exp.default_runs):5d}  {exp.description}")
         return 0
 
     try:
         exp = experiments.get(args.name)
     except ValueError as e:
-        print(f"jdrkf: {e}", file=sys.stderr)
-        return 2
-    runs = exp.default_runs if args.runs is None else args.runs
-    if runs < 2:
-        print("jdrkf: --runs must be at least 2 (confidence intervals need two runs)", file=sys.stderr)
-        return 2
-    progress = not args.no_progress
-    if progress:
-        try:
-            import tqdm  # noqa: F401
-        except ImportError:
-            print("(progress bar disabled: install tqdm, e.g. pip install 'jdrkf[cli]')", file=sys.stderr)
-            progress = False
+        return _fail(str(e))
+    progress = _progress_wanted(args.progress)
     t0 = time.perf_counter()
-    report = exp.run(runs=runs, seed=args.seed, progress=progress, curves=args.plots is not None)
-    elapsed = time.perf_counter() - t0
+    report = exp.reproduce(args.runs, args.seed, quick=args.quick, progress=progress, curves=args.plots is not None,
+                           settings={"precision": args.precision})
+    report.settings["wall time"] = f"{time.perf_counter() - t0:.1f} s"
     print(report.table())
-    print(f"\n({runs} runs, seed {args.seed}, {args.precision}, {elapsed:.1f} s)")
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report.to_json(), indent=2))
+        print(f"\nreport: {args.json}")
     if args.plots is not None:
         from .plotting import plot_error_curves, plot_sweeps
 

@@ -15,7 +15,7 @@ def _figure(**kwargs):
     try:
         from matplotlib.figure import Figure
     except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError("plotting needs matplotlib: pip install 'jdrkf[notebooks]'") from e
+        raise ImportError("plotting needs matplotlib: pip install 'jdrkf[cli]'") from e
     return Figure(**kwargs)
 
 
@@ -25,6 +25,19 @@ def moving_average(x: np.ndarray, window: int) -> np.ndarray:
     idx = np.arange(1, len(x) + 1)
     lo = np.maximum(idx - window, 0)
     return (c[idx] - c[lo]) / (idx - lo)
+
+
+_STYLES = ("-", "--", "-.", ":")
+
+
+def _style(i: int) -> dict:
+    """Line style of the `i`-th series: colours cycle with dashes, so that neighbours in
+    the legend differ in both."""
+    return {"color": f"C{i % 10}", "linestyle": _STYLES[i % len(_STYLES)]}
+
+
+def _legend_outside(ax):
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
 
 
 def _save(fig, path):
@@ -42,23 +55,23 @@ def plot_sweeps(report: Report, path: str | pathlib.Path) -> pathlib.Path:
         raise ValueError("the report has no parameter sweeps")
     from . import metrics
 
-    fig = _figure(figsize=(6 * len(report.sweeps), 4))
+    fig = _figure(figsize=(7.5 * len(report.sweeps), 4))
     axes = fig.subplots(1, len(report.sweeps), squeeze=False)
     for ax, (title, sw) in zip(axes[0], report.sweeps.items(), strict=True):
-        for name, vals in sw.values.items():
+        for i, (name, vals) in enumerate(sw.values.items()):
             # Failed runs are NaN in a sweep: each point averages the finite runs.
             cols = [vals[:, j][np.isfinite(vals[:, j])] for j in range(len(sw.x))]
             stats = [metrics.mean_ci(c) if c.size > 1 else (float(np.mean(c)) if c.size else np.nan, (np.nan, np.nan)) for c in cols]
             mean = np.array([m for m, _ in stats])
-            (line,) = ax.plot(sw.x, mean, label=name)
+            (line,) = ax.plot(sw.x, mean, label=name, **_style(i))
             ax.fill_between(sw.x, [c[0] for _, c in stats], [c[1] for _, c in stats], color=line.get_color(), alpha=0.2)
             if name in sw.paper:
-                ax.plot(sw.x, sw.paper[name], "x", color=line.get_color())
+                ax.plot(sw.x, sw.paper[name], "x", color=line.get_color(), label=f"{name} (paper)")
         ax.set_xlabel(sw.x_label)
         ax.set_ylabel(sw.y_label)
-        ax.set_title(title + (" (x: paper)" if sw.paper else ""))
+        ax.set_title(f"{title}: mean and 95% band" + (", x = paper" if sw.paper else ""), fontsize=10)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        _legend_outside(ax)
     return _save(fig, path)
 
 
@@ -69,17 +82,19 @@ def plot_error_curves(report: Report, path: str | pathlib.Path, window: int = 50
     log scale with that label. Returns the file path."""
     if not report.curves:
         raise ValueError("the report has no per-step curves; run the experiment with curves=True")
-    fig = _figure(figsize=(7, 4))
+    fig = _figure(figsize=(8.5, 4))
     ax = fig.subplots()
-    for name, curve in report.curves.items():
+    for i, (name, curve) in enumerate(report.curves.items()):
         k = np.arange(1, len(curve) + 1)
         if report.curves_ylabel is None:
-            ax.plot(k, 10 * np.log10(moving_average(curve, window)), label=name)
+            ax.plot(k, 10 * np.log10(moving_average(curve, window)), label=name, **_style(i))
         else:
-            ax.semilogy(k, curve, label=name)
+            ax.semilogy(k, curve, label=name, **_style(i))
     ax.set_xlabel("time step k")
     ax.set_ylabel(f"10 log10 MSE ({window}-step moving average, dB)" if report.curves_ylabel is None else report.curves_ylabel)
-    ax.set_title(report.experiment)
-    ax.legend()
+    what = "per-step MSE, mean over runs" if report.curves_ylabel is None else report.curves_ylabel
+    runs = report.settings.get("runs")
+    ax.set_title(f"{report.experiment}: {what}" + (f" ({runs} runs)" if runs else ""), fontsize=10)
+    _legend_outside(ax)
     ax.grid(alpha=0.3)
     return _save(fig, path)

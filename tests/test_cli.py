@@ -1,8 +1,11 @@
 """The `jdrkf` command line and the experiment registry."""
 
 import json
+import pathlib
+import re
 import subprocess
 import sys
+import time
 
 import jax
 import numpy as np
@@ -56,10 +59,168 @@ def test_report_ranking_and_errors(capsys):
     row = jdrkf.experiments.Row
     rep = jdrkf.experiments.Report("x", 0, [row("A", "rmse", 1.0, 2.0, (1.5, 2.5), 3), row("B", "rmse", 2.0, 1.0, (0.5, 1.5), 3)])
     assert rep.ranking_agrees("rmse") is False
-    assert "Ranking by rmse agrees with the paper: NO" in rep.table()
+    # Unpaired (no per-run values): A − B = 1 ± hypot(0.5, 0.5), above 0: the paper's order is reversed.
+    (pair,) = rep.ranking_pairs("rmse")
+    assert pair["verdict"] == "reversed" and not pair["paired"]
+    np.testing.assert_allclose(pair["ci95"], (1 - np.hypot(0.5, 0.5), 1 + np.hypot(0.5, 0.5)))
+    assert "0 reversed" not in rep.table() and "1 reversed" in rep.table()
     assert cli.main(["reproduce", "no-such-experiment"]) == 2
     assert "unknown experiment 'no-such-experiment'" in capsys.readouterr().err
-    assert cli.main(["reproduce", "wang-ye-table1", "--runs", "1"]) == 2
+
+
+def _report(values: dict, paper: dict):
+    return jdrkf.experiments.Report("x", 0, [jdrkf.experiments.Row.from_values(f, "rmse", paper[f], v) for f, v in values.items()])
+
+
+def test_ranking_is_paired_and_respects_ties():
+    rng = np.random.default_rng(0)
+    base = rng.uniform(5.0, 15.0, 30)  # a large run-to-run spread, shared by all filters (common random numbers)
+    values = {"A": base, "B": base + 0.05 + 0.01 * rng.standard_normal(30), "C": base + 0.05 + 0.01 * rng.standard_normal(30)}
+    # Paper: A < B clearly, B and C within 1% (a tie).
+    pairs = _report(values, {"A": 10.0, "B": 12.0, "C": 12.05}).ranking_pairs("rmse")
+    assert [(p["a"], p["b"], p["verdict"]) for p in pairs] == [("A", "B", "agrees"), ("B", "C", "tie")]
+    # Paired interval from NumPy/SciPy: mean difference ± t_{0.975, 29} s / √30.
+    from scipy import stats
+    d = values["A"] - values["B"]
+    half = stats.t.ppf(0.975, 29) * d.std(ddof=1) / np.sqrt(30)
+    np.testing.assert_allclose(pairs[0]["ci95"], (d.mean() - half, d.mean() + half), rtol=1e-9)
+    assert pairs[0]["paired"] and pairs[0]["ci95"][1] < 0  # resolved only because it is paired
+    # Unpaired, the same means would not be resolved (the spread of `base` dominates).
+    lo_a, hi_a = _report(values, {"A": 10.0, "B": 12.0, "C": 12.05}).rows[0].ci95
+    assert hi_a - lo_a > 1.0
+    # The paper's order reversed in ours: B < A in the paper.
+    rev = _report({"A": values["A"], "B": values["B"]}, {"A": 12.0, "B": 10.0}).ranking_pairs("rmse")
+    assert rev[0]["a"] == "B" and rev[0]["verdict"] == "reversed"
+
+
+def test_report_header_legend_single_run_and_positive_ci():
+    row = jdrkf.experiments.Row
+    rng = np.random.default_rng(1)
+    skewed = np.exp(rng.normal(0.0, 2.0, 5))  # positive, heavy right tail: a linear t-interval goes below 0
+    lin_lo = skewed.mean() - 2.7764451051977987 * skewed.std(ddof=1) / np.sqrt(5)  # t_{0.975, 4}
+    assert lin_lo < 0
+    rows = [row.from_values("MKF-tuned", "rmse", 11.7, skewed), row.from_values("HKF", "rmse", None, [3.0])]
+    rep = jdrkf.experiments.Report("x", 3, rows, settings={"runs": 5})
+    lo, hi = rows[0].ci95
+    # Log-scale delta-method interval: m · exp(±t · se / m).
+    m, se = skewed.mean(), skewed.std(ddof=1) / np.sqrt(5)
+    np.testing.assert_allclose((lo, hi), (m * np.exp(-2.7764451051977987 * se / m), m * np.exp(2.7764451051977987 * se / m)), rtol=1e-9)
+    assert 0 < lo < m < hi
+    text = rep.table()
+    assert "nan" not in text and "— (1 run)" in text
+    assert "Run settings: seed 3, runs 5" in text
+    assert "- MKF-tuned: moment-based distributionally robust Kalman filter" in text
+    assert "- HKF: Huber Kalman filter" in text
+
+
+class _Computed(Exception):
+    pass
+
+
+@pytest.fixture
+def no_compute(monkeypatch):
+    """Fail if the CLI reaches the experiment (or imports the experiments for `reproduce`)."""
+    def boom(*args, **kwargs):
+        raise _Computed("the CLI computed before rejecting its arguments")
+
+    monkeypatch.setattr(jdrkf.experiments.Experiment, "reproduce", boom)
+    monkeypatch.setattr(jdrkf.experiments, "get", boom)
+
+
+def _one_line_error(capsys, code, *needles):
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.endswith("\n") and err.count("\n") == 1, err
+    assert err.startswith("jdrkf: error: ")
+    for n in needles:
+        assert n in err, err
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--runs", "1"], "argument --runs: must be at least 2, got 1"),
+        (["--runs", "2.5"], "argument --runs: expected an integer, got '2.5'"),
+        (["--seed", "-1"], "argument --seed: must be in [0, 4294967296), got -1"),
+        (["--seed", str(2**32)], "argument --seed: must be in [0, 4294967296)"),
+        (["--precision", "float16"], "argument --precision: invalid choice"),
+    ],
+)
+def test_bad_ranges_fail_at_once(args, needle, capsys, no_compute):
+    t0 = time.perf_counter()
+    with pytest.raises(SystemExit) as e:
+        cli.main(["reproduce", "wang-ye-table3", *args])
+    assert time.perf_counter() - t0 < 1.0
+    _one_line_error(capsys, e.value.code, needle)
+
+
+def test_unwritable_json_fails_before_computing(tmp_path, capsys, no_compute):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")  # a file where a directory is needed: unwritable even for root
+    t0 = time.perf_counter()
+    code = cli.main(["reproduce", "wang-ye-table3", "--json", str(blocker / "out.json")])
+    assert time.perf_counter() - t0 < 1.0
+    _one_line_error(capsys, code, "cannot write --json", "out.json")
+    _one_line_error(capsys, cli.main(["reproduce", "wang-ye-table3", "--json", str(tmp_path)]), "it is a directory")
+    # a writable path is left as it was (nothing created before the run)
+    ok = tmp_path / "new" / "t.json"
+    assert cli._check_file(ok) is None and not ok.exists()
+
+
+def test_unwritable_plot_dir_fails_before_computing(tmp_path, capsys, no_compute):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    _one_line_error(capsys, cli.main(["reproduce", "wang-ye-table3", "--plots", str(blocker)]), "cannot write --plots")
+
+
+def test_missing_matplotlib_fails_before_computing(tmp_path, capsys, monkeypatch, no_compute):
+    # `None` in sys.modules makes `import matplotlib...` raise ImportError, as if not installed.
+    for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    t0 = time.perf_counter()
+    code = cli.main(["reproduce", "wang-ye-table3", "--plots", str(tmp_path / "figs")])
+    assert time.perf_counter() - t0 < 1.0
+    _one_line_error(capsys, code, "--plots needs matplotlib", "pip install 'jdrkf[cli]'")
+
+
+def test_missing_tqdm_with_progress_fails_before_computing(capsys, monkeypatch, no_compute):
+    monkeypatch.setitem(sys.modules, "tqdm", None)
+    _one_line_error(capsys, cli.main(["reproduce", "wang-ye-table3", "--progress"]), "--progress needs tqdm")
+
+
+def test_cli_extra_installs_what_the_cli_imports():
+    import tomllib
+
+    pyproject = pathlib.Path(__file__).resolve().parent.parent / "pyproject.toml"
+    cli_extra = tomllib.loads(pyproject.read_text())["project"]["optional-dependencies"]["cli"]
+    names = {re.split(r"[<>=\[ ]", d)[0] for d in cli_extra}
+    assert {"matplotlib", "tqdm"} <= names
+
+
+def test_quick_mode_and_list(capsys, monkeypatch):
+    seen = {}
+
+    def fake_run(runs, seed, progress=False, curves=False, **options):
+        seen.update(runs=runs, seed=seed, progress=progress, **options)
+        return jdrkf.experiments.Report("fake", seed, [jdrkf.experiments.Row.from_values("KF", "rmse", 1.0, [1.0, 2.0])])
+
+    exp = jdrkf.experiments.Experiment("fake", "a fake experiment", 100, fake_run, metric="RMSE (m)",
+                                       quick={"runs": 3, "num_steps": 10})
+    monkeypatch.setitem(jdrkf.experiments.EXPERIMENTS, "fake", exp)
+    assert cli.main(["reproduce", "fake", "--quick", "--seed", "5", "--no-progress"]) == 0
+    assert seen == {"runs": 3, "seed": 5, "progress": False, "num_steps": 10}
+    out = capsys.readouterr().out
+    assert "## fake — a fake experiment" in out and "Metric: RMSE (m)" in out
+    assert "runs 3, mode quick (runs=3, num_steps=10)" in out and "precision float64" in out
+    seen.clear()
+    assert cli.main(["reproduce", "fake", "--quick", "--runs", "7", "--no-progress"]) == 0
+    assert seen["runs"] == 7 and seen["num_steps"] == 10
+    assert cli.main(["list"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fake "))
+    assert line.split()[1:3] == ["100", "3"]
+    for e in jdrkf.experiments.EXPERIMENTS.values():  # every experiment has a quick mode smaller than its default
+        assert 2 <= e.quick["runs"] <= e.default_runs
 
 
 def test_console_script_entry_point():

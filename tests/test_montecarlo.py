@@ -69,8 +69,10 @@ def test_montecarlo_validation():
         jdrkf.montecarlo({}, model, prior, traj)
     with pytest.raises(ValueError, match=r"filters\['x'\] must be a jdrkf filter"):
         jdrkf.montecarlo({"x": object()}, model, prior, traj)
-    with pytest.raises(ValueError, match="chunk_size must be positive"):
+    with pytest.raises(ValueError, match="chunk_size must be >= 1"):
         jdrkf.montecarlo({"KF": jdrkf.KalmanFilter()}, model, prior, traj, chunk_size=0)
+    with pytest.raises(ValueError, match="chunk_size must be an integer"):
+        jdrkf.montecarlo({"KF": jdrkf.KalmanFilter()}, model, prior, traj, chunk_size=2.5)
 
 
 def test_sharded_over_two_host_devices_matches_single_device(tmp_path):
@@ -102,3 +104,15 @@ def test_progress_bar_counts_chunks(capsys):
     jdrkf.montecarlo({"KF": jdrkf.KalmanFilter()}, model, prior, traj, chunk_size=2, progress=True)
     err = capsys.readouterr().err
     assert "Monte Carlo chunks" in err and "3/3" in err
+
+
+def test_keeps_the_callers_order_of_filters_and_metrics():
+    # JAX flattens dicts in sorted key order; the result must follow the caller's order instead.
+    model, prior, traj = _setup(runs=2, T=5)
+    flts = {"zeta": jdrkf.KalmanFilter(), "alpha": jdrkf.Clairvoyant(jdrkf.KalmanFilter()), "Mid": jdrkf.KalmanFilter()}
+    mets = {"z_rmse": lambda tr, res: jdrkf.metrics.rmse(tr.states, res.filtered_means),
+            "a_mse": lambda tr, res: jnp.mean(jdrkf.metrics.squared_error(tr.states, res.filtered_means))}
+    out = jdrkf.montecarlo(flts, model, prior, traj, metrics=mets, chunk_size=1)
+    assert list(out) == ["zeta", "alpha", "Mid"]
+    assert all(list(v) == ["z_rmse", "a_mse", "success"] for v in out.values())
+    np.testing.assert_allclose(out["zeta"]["z_rmse"] ** 2, out["zeta"]["a_mse"], rtol=1e-12)

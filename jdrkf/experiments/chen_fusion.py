@@ -1,5 +1,5 @@
 """Chen, Li, Liu, He, "A Marginal Distributionally Robust Kalman Filter for Sensor
-Fusion" (seed 002): `chen-fusion` (Table I, Fig. 1).
+Fusion" (IEEE SPL 2025): `chen-fusion` (Table I, Fig. 1).
 
 Three scalar sensors measure position, velocity and acceleration (`H = I₃`) of a
 constant-acceleration target, eq. (34): `x_{t+1} = F x_t + G w_t`, `w ~ N(0, 1)`,
@@ -12,7 +12,7 @@ local posteriors from a common fused prior (`CI`, determinant criterion as MATLA
 (`KL-MDRKF`, `MC-MDRKF`), and the centralized KF (`CKF`, computed but not shown in
 the paper).
 
-Two scenario variants (reference-settings.md §5):
+Two scenario variants (the authors' MATLAB code `lylechan42/MDRKF` differs from the text):
 
 - `paper`: the text's settings — `T_s = 0.1`, nominal `Q = 1` (the true one), `V_0 = 100 I`.
 - `authors-code`: what `dynamic_estimation_MC.m` runs — `dt = 0.01`, nominal
@@ -209,7 +209,7 @@ WHY = [
     "conservative where the data are informative.",
     "Our MSE levels differ from Table I's by large factors in both variants (e.g. the single-sensor KF's position MSE "
     "is 10.5 in the paper, 1.5 and 2.0 here). The authors' released script cannot produce its own plots (it references "
-    "undefined variables, reference-settings.md §5), so the run behind Table I and its averaging are not known.",
+    "undefined variables), so the run behind Table I and its averaging are not known.",
 ]
 
 

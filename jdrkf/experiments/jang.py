@@ -1,6 +1,6 @@
 """Jang, Hakobyan, Yang, "On the steady-state distributionally robust Kalman filter"
-(seed 004): `jang-convergence` (Section 5.1, Fig. 1) and `jang-lqr` (Section 5.2,
-Table 1). Settings: reference-settings.md §6 (the authors' `SteadyStateDRKF` code).
+(2025): `jang-convergence` (Section 5.1, Fig. 1) and `jang-lqr` (Section 5.2,
+Table 1). Settings: the authors' code `jangminhyuk/SteadyStateDRKF`.
 
 **jang-convergence.** The 2-D benchmark `A = [[0.1, 1], [0, 1.2]]`, `C = [1, −1]`,
 `Σ̂w = I`, `Σ̂v = 1`, `θv = 0`, `θx = θ_max` (eq. 20, `N = 8`, `q = 20`): the relative
@@ -235,7 +235,7 @@ def _run_batch(flt, qs, rs, keys, setting_laws, true_model, controller, referenc
     if isinstance(flt, (BCOTKF, SteadyStateDRKF)):
         # One run after another (`lax.map`): each run solves for its own EM nominals with
         # while-loop Newton solvers, which under `vmap` run every run's solve for the slowest
-        # one's iterations. (Before `import jdrkf` set PJRT_NPROC, jaxlib 0.10's batched LAPACK
+        # one's iterations. (Without `jdrkf.use_large_cpu_pool()`, jaxlib 0.10's batched LAPACK
         # could also deadlock here: a 200-run vmap of BCOT hung.)
         return jax.lax.map(lambda x: one(*x), (qs, rs, keys))
     return jax.vmap(one)(qs, rs, keys)

@@ -1,4 +1,4 @@
-"""Li, Shi, Yu, Shi, "Variational Robust Kalman Filters" (seed 001), Example 2
+"""Li, Shi, Yu, Shi, "Variational Robust Kalman Filters", Example 2
 (Sec. IV-B, Figs. 6–7): `li-convergence`, how fast and how smoothly STKF-AR1 tracks a
 step-like measurement variance as a function of the forgetting factor `ρ`.
 

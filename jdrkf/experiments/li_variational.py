@@ -1,7 +1,7 @@
-"""Li, Shi, Yu, Shi, "Variational Robust Kalman Filters: A Unified Framework" (seed 001):
+"""Li, Shi, Yu, Shi, "Variational Robust Kalman Filters: A Unified Framework":
 `li-torsion` (Example 4 / Sec. IV-C, Table IV) and `li-identity` (Example 1, Table III).
 
-Settings follow the authors' MATLAB code (reference-settings.md §4), which differs from
+Settings follow the authors' MATLAB code (`lsl-zsj/Variational-Robust-Kalman-Filters`), which differs from
 the printed text in places (listed in each report's notes).
 
 **li-torsion.** Two-inertia torsion system (`b_m = 0.015`, `b_t = 0.004`,

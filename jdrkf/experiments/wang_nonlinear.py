@@ -1,7 +1,7 @@
-"""Wang, "Distributionally Robust State Estimation for Nonlinear Systems" (seed 003):
+"""Wang, "Distributionally Robust State Estimation for Nonlinear Systems" (IEEE TSP 2022):
 `wang-growth` (Tables I–II, Fig. 3) and `wang-tracking` (Table III).
 
-Settings follow the paper and the authors' MATLAB (reference-settings.md §3). The
+Settings follow the paper and the authors' MATLAB (`Spratm-Asleaf/DRSE-Nonlinear`). The
 robust particle filter (RPF) that the authors' code runs is the likelihood inflation
 of Method 3 (`θ = 5`) plus gating (skip the weight update when every particle's
 likelihood is ≤ 1e-6, i.e. Methods 6–7 with "drop"); its max-entropy prior step is
@@ -80,13 +80,13 @@ PAPER_GROWTH = {
 
 
 def growth_f(x, t):
-    """Seed 003, Section V-A: `x/2 + 25x/(1 + x²) + 8 cos(1.2 k)`, `k = t + 1`."""
+    """Wang (2022), Section V-A: `x/2 + 25x/(1 + x²) + 8 cos(1.2 k)`, `k = t + 1`."""
     k = (t + 1).astype(x.dtype)
     return x / 2 + 25 * x / (1 + x**2) + 8 * jnp.cos(1.2 * k)
 
 
 def growth_h(x, t):
-    """Seed 003, Section V-A: the nominal measurement `x²/20`."""
+    """Wang (2022), Section V-A: the nominal measurement `x²/20`."""
     return x**2 / 20
 
 

@@ -1,6 +1,6 @@
 """Wang & Ye (2022), Section VII-D "Sensitivity Analysis": Fig. 1(a), 1(b) and Fig. 2.
 
-Same system as Tables I–III (`wang_ye`), over `T = 10⁴` steps (reference-settings.md §1):
+Same system as Tables I–III (`wang_ye`), over `T = 10⁴` steps (as in the authors' code `Spratm-Asleaf/DRSE-Outlier`):
 
 - `wang-ye-sensitivity`, Fig. 1(a): `α = 0`, outliers `±25` with probability `ε_real`
   swept over 0…0.5; the DR estimator without ambiguity (`θ₂ = 1`) under the
@@ -45,8 +45,8 @@ THETA_EPS_REAL = 0.05
 CONTAMINATION_EPS, CONTAMINATION_K, NORMAL_EPS = 0.01, 2.0, 0.03
 BOOTSTRAP = 2000
 
-# The authors' stored breakdown numbers (one 10⁴-step episode each, reference-settings.md
-# §1, ONLY_OUTLIER.mat and ALSO_UNCERTAINTY.mat): PAPER_BREAKDOWN[α][ε_real][filter].
+# The authors' stored breakdown numbers (one 10⁴-step episode each, `Spratm-Asleaf/DRSE-Outlier`,
+# ONLY_OUTLIER.mat and ALSO_UNCERTAINTY.mat): PAPER_BREAKDOWN[α][ε_real][filter].
 _FILTERS = ("TMKF", "KF", "HKF", "tau-KF", "WKF", "MKF")
 PAPER_BREAKDOWN = {
     0.0: {
@@ -311,7 +311,7 @@ def run_breakdown(runs: int, seed: int, progress: bool = False, curves: bool = F
     t1 = vals[1.0]
     notes.append(
         "TMKF at α = 1: the authors' GenerateData stored F_t after redrawing Δ, so their TMKF filtered with "
-        f"F_{{t+1}} (reference-settings.md §1). Ours uses the true F_t: RMSE {_mean_ci(t1['TMKF'][:, 0])} (the same at "
+        f"F_{{t+1}}. Ours uses the true F_t: RMSE {_mean_ci(t1['TMKF'][:, 0])} (the same at "
         "every ε_real: outlier-free data, common random numbers); TMKF-off-by-one, the same clairvoyant KF given "
         f"F_{{t+1}}, has {_mean_ci(t1['TMKF-off-by-one'][:, 0])}, the paper's 8.78–9.48: the authors' TMKF is not the "
         "clairvoyant bound it is meant to be, which is why our TMKF is about a third of theirs."
