@@ -30,7 +30,7 @@ file when there is none for the platform).
 Usage:
 
     python benchmarks/call_floor.py                 # writes results/call_floor_cpu.{json,md}
-    python benchmarks/call_floor.py --out /tmp/cf
+    python benchmarks/call_floor.py --out smoke/cf
     python benchmarks/call_floor.py --platform gpu  # writes results/call_floor_gpu.{json,md}
 """
 

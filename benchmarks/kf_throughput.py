@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Kalman-filter throughput on the path users type: jdrkf vs dynamax vs a minimal JAX KF vs NumPy.
 
-Seed 000's system (n = 2 states, m = 1 observation), B independent runs of length T
+Wang & Ye's (2022) system (n = 2 states, m = 1 observation), B independent runs of length T
 simulated once with NumPy (fixed seed) and fed to every implementation, in float32 and
 float64 (each dtype in its own child process). Every row is timed in the same process:
 compile time = first call − median call; run time = median of `--repeats` calls
@@ -36,7 +36,7 @@ means), the per-run path vs NumPy (means, covariances, log-likelihoods); toleran
 
     python benchmarks/kf_throughput.py                  # B = 1e4, T = 1000, float32 + float64
     python benchmarks/kf_throughput.py --platform gpu   # on a GPU
-    python benchmarks/kf_throughput.py --quick --out /tmp/kfb   # smoke run, B = 100, T = 100
+    python benchmarks/kf_throughput.py --quick --out smoke/kfb   # smoke run, B = 100, T = 100
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ import numpy as np
 
 from _provenance import cpu_model, device_summary, loadavg, package_source_hash, set_platform
 
-# Seed 000's system: x_k = F x_{k-1} + w_k, y_k = H x_k + v_k, x_0 ~ N(0, I2).
+# Wang & Ye's (2022) system: x_k = F x_{k-1} + w_k, y_k = H x_k + v_k, x_0 ~ N(0, I2).
 SYSTEM = {
     "F": [[0.9802, 0.0196], [0.0, 0.9802]],
     "H": [[1.0, -1.0]],
@@ -329,7 +329,7 @@ def build_markdown(result) -> str:
     lines = [
         f"# Kalman-filter throughput ({meta['platform_tag']}): jdrkf vs dynamax vs a minimal JAX KF vs NumPy",
         "",
-        f"- Seed 000's system (n=2, m=1), T={cfg['T']}, data seed {cfg['seed']}, {cfg['repeats']} timed calls per cell "
+        f"- Wang & Ye's (2022) system (n=2, m=1), T={cfg['T']}, data seed {cfg['seed']}, {cfg['repeats']} timed calls per cell "
         "(median; best in the goal table), compile = first call − median.",
         f"- Machine: {meta['cpu_model']}, {meta['cpu_count']} cores; JAX device: {meta['device']}; "
         f"jax {meta['versions']['jax']}, dynamax {meta['versions']['dynamax']}, numpy {meta['versions']['numpy']}; "

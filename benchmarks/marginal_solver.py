@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Marginal DR-MMSE solver (seed 002, Chen et al. 2025, problem (16)): jdrkf vs cvxpy + Clarabel.
+"""Marginal DR-MMSE solver (Chen et al. 2025, problem (16)): jdrkf vs cvxpy + Clarabel.
 
 Chen-fusion-like instances: n = 3 constant-acceleration state (dt = 0.01, the authors'
 `getSys(dt, 3, ·)`), p ∈ {3, 10} scalar sensors. p = 3: H = I₃, R = diag(5, 8, 10)
@@ -23,7 +23,7 @@ Agreement: |jdrkf − SDP| / SDP.
 recorded and the output stem is `marginal_solver_<platform>`.
 
 Usage:
-    python benchmarks/marginal_solver.py --quick --out /tmp/marg_bench   # a few seconds + compile
+    python benchmarks/marginal_solver.py --quick --out smoke/marg_bench   # a few seconds + compile
     python benchmarks/marginal_solver.py                                  # full run
     python benchmarks/marginal_solver.py --platform gpu                   # jdrkf on a GPU
 """
@@ -46,7 +46,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 sys.path.insert(0, ROOT)
 
-from _provenance import cpu_model, device_summary, git_info, loadavg, package_source_hash, set_platform, versions  # noqa: E402
+from _provenance import cpu_model, device_summary, git_info, loadavg, package_source_hash, portable_path, set_platform, versions  # noqa: E402
 
 
 def log(msg):
@@ -217,7 +217,7 @@ def main():
             })
             log(json.dumps(rows[-1], default=float))
     result = {
-        "benchmark": "marginal_solver", "quick": a.quick, "args": vars(a),
+        "benchmark": "marginal_solver", "quick": a.quick, "args": {**vars(a), "out": portable_path(a.out)},
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
         "cpu": cpu_model(), "device": device, "versions": versions(), "git": git_info(),
         "jdrkf_source_sha256": package_source_hash(), "wall_s": time.time() - t_start, "rows": rows,
@@ -239,7 +239,7 @@ def main():
     log(f"wrote {stem}.json and {stem}.md ({result['wall_s']:.0f} s)")
 
 
-# The authors' chen-fusion run (reference-settings.md §5): 1000 runs × 20 radii × 600 steps
+# The authors' chen-fusion run (their MATLAB code `lylechan42/MDRKF`): 1000 runs × 20 radii × 600 steps
 # CVX solves. jdrkf's MarginalDRKF covariance path does not depend on the data, so vmap over
 # runs solves once per step and radius: 20 × 600 solves for the same table.
 AUTHORS_SOLVES = 1000 * 20 * 600

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
-"""Bootstrap particle filter (seed 003, Sec. V growth model): jdrkf vs vectorized NumPy.
+"""Bootstrap particle filter (Wang 2022, Sec. V growth model): jdrkf vs vectorized NumPy.
 
-Model (Wang, seed 003, Sec. V; the authors' `[1] Time Series Example`):
+Model (Wang 2022, Sec. V; the authors' `[1] Time Series Example`):
 `x_k = x/2 + 25x/(1 + x²) + 8 cos(1.2k) + w`, `y_k = x_k²/20 + v`, `Q = 10`, `R = 1`,
 `x_0 ~ N(0, 1)`. `--runs` independent trajectories of `--steps` steps are simulated once
 with NumPy (`--seed`) and fed to every implementation, in each `--dtype` (default: both
@@ -199,7 +199,7 @@ def build_markdown(r) -> str:
     c, m = r["config"], r["meta"]
     L = [f"# Bootstrap particle filter ({c.get('platform', 'cpu').upper()}): jdrkf vs NumPy "
          f"({'quick' if c['quick'] else 'full'} run)", "",
-         f"Growth model of seed 003 (Q = {Q:g}, R = {R:g}), N = {c['particles']} particles, T = {c['steps']}, "
+         f"Growth model of Wang 2022 (Q = {Q:g}, R = {R:g}), N = {c['particles']} particles, T = {c['steps']}, "
          f"{c['runs']} runs, dtypes {', '.join(c['dtype'])}. JAX device: {m.get('device')} ({', '.join(m['jax_devices'])}, "
          f"backend {m['jax_backend']}); NumPy on the CPU. CPU: {m['cpu_model']} ({m['cpu_affinity']} usable cores), "
          f"load {m['loadavg']['start']} → {m['loadavg']['end']}. jax {m['versions'].get('jax')}, "

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Steady-state DR solver (seed 004, problem (14)): jdrkf vs cvxpy + Clarabel.
+"""Steady-state DR solver (Jang, Hakobyan & Yang 2025, problem (14)): jdrkf vs cvxpy + Clarabel.
 
 For (n, m) ∈ {(2, 1), (4, 2), (10, 5)} and `--instances` random systems per size
 (seeded; `A` Gaussian scaled to spectral radius uniform in [0.5, 1.2], `C` Gaussian,
@@ -69,7 +69,7 @@ whose phase runs longer than `--watchdog-s` (jaxlib 0.10's batched-LAPACK deadlo
 Usage:
 
     python benchmarks/steady_state_solver.py                          # full run
-    python benchmarks/steady_state_solver.py --quick --out /tmp/ssb   # smoke run (~1-2 min)
+    python benchmarks/steady_state_solver.py --quick --out smoke/ssb   # smoke run (~1-2 min)
     python benchmarks/steady_state_solver.py --platform gpu           # jdrkf on a GPU (writes *_gpu.*)
     python benchmarks/steady_state_solver.py --sizes 2x1 4x2 --instances 20 --openblas-threads 1
 """
@@ -581,7 +581,7 @@ def build_markdown(r) -> str:
     def g(d, k, spec, na="n/a"):
         return fmt((d or {}).get(k), spec, na)
 
-    L = [f"# Steady-state DR solver (seed 004, problem (14)) on {cfg.get('platform', 'cpu').upper()}: "
+    L = [f"# Steady-state DR solver (Jang, Hakobyan & Yang 2025, problem (14)) on {cfg.get('platform', 'cpu').upper()}: "
          "jdrkf vs cvxpy + Clarabel", ""]
     if meta:
         L += [

@@ -33,7 +33,7 @@ NumPy value). The joint SDP is skipped for d = n + m > `--joint-sdp-max-d` (defa
 20): at (30, 10) Clarabel took 160 s per solve here and ended `optimal_inaccurate`
 at every tolerance; those sizes are checked against the certified NumPy value only.
 
-Filter comparison (seed 000's system of `jdrkf.experiments.wang_ye`, α = 1, no
+Filter comparison (Wang & Ye's (2022) system of `jdrkf.experiments.wang_ye`, α = 1, no
 outliers): a decoupled Wasserstein DRKF written with the cvxpy DPP problem (Wang &
 Ye 2022, Algorithm 1 without outliers: M = F P Fᵀ + Q, SDP for Σx*, Σv*,
 K = Σx* Hᵀ (H Σx* Hᵀ + Σv*)⁻¹, P = Σx* − K H Σx*) on one run for `--cvxpy-steps`
@@ -66,7 +66,7 @@ profile also times the n = 2 single solve in a child with the other setting.
 Usage:
 
     python benchmarks/wasserstein_solver.py                      # full run (~10 min on 2 cores)
-    python benchmarks/wasserstein_solver.py --quick --out /tmp/ws  # smoke run (~2 min)
+    python benchmarks/wasserstein_solver.py --quick --out smoke/ws  # smoke run (~2 min)
     python benchmarks/wasserstein_solver.py --precision float32    # jdrkf in float32 (SDPs stay float64)
     python benchmarks/wasserstein_solver.py --platform gpu         # jdrkf on a GPU (cvxpy/NumPy stay on the CPU)
     python benchmarks/wasserstein_solver.py --sizes 2x1 4x2 --batch 1000 --no-filter
@@ -889,7 +889,7 @@ def build_markdown(r) -> str:
     f = r.get("filter")
     if f:
         L += [
-            "## Filter: decoupled Wasserstein DRKF on seed 000's system (α = 1, no outliers)",
+            "## Filter: decoupled Wasserstein DRKF on Wang & Ye's (2022) system (α = 1, no outliers)",
             "",
             f"θx = {f['theta_x']}, θv = {f['theta_v']}; jdrkf `DRKF(Wasserstein(θx), Wasserstein(θv), throw=False)`.",
             "",

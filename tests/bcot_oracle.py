@@ -1,6 +1,6 @@
 """Independent CVXPY (Clarabel) and NumPy oracles for the BCOT DR Kalman step.
 
-NumPy in / NumPy out; does NOT depend on jax or jdrkf. Problem (algorithms.md §D.2):
+NumPy in / NumPy out; does NOT depend on jax or jdrkf. Problem (Han 2023, as in docs/math/steady_state.md):
 
     max_{Σ, Q, R}  Tr(P⁻ − P⁻Cᵀ(CP⁻Cᵀ + R)⁻¹CP⁻),   P⁻ = AΣAᵀ + Q,
     s.t.  B²(N(Q, R), N(Q_p, R_p)) + B²(H^½ΣH^½, H^½Σ_pH^½) ≤ radius,

@@ -1,5 +1,5 @@
 """Independent NumPy / SciPy / CVXPY oracles for the multi-sensor fusion filters
-(Chen et al. 2025; reference-settings.md §5; algorithms.md §B.2, §F).
+(Chen et al. 2025; the authors' MATLAB code lylechan42/MDRKF; docs/math/marginal.md).
 
 NumPy in / NumPy out; does NOT import jax or jdrkf.
 """

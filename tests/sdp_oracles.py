@@ -3,7 +3,7 @@
 NumPy in / NumPy out; does NOT depend on jax or jdrkf.  Used by
 ``tests/test_sets.py`` to check the first-order solvers in ``jdrkf.sets``.
 
-Problems (Wang & Ye 2022, eqs. (32)-(37) and Theorem 8; algorithms.md §A, §B.3)
+Problems (Wang & Ye 2022, eqs. (32)-(37) and Theorem 8; docs/math/wasserstein.md)
 -----------------------------------------------------------------------------
 Decoupled:  max_{Σx ∈ 𝒮x, Σv ∈ 𝒮v}  Tr(Σx) − i_min Tr(Σx Hᵀ (H Σx Hᵀ + Σv)⁻¹ H Σx)
 Joint:      max_{S ∈ 𝒮}              Tr(S_xx − S_xy S_yy⁻¹ S_yx)
@@ -159,7 +159,7 @@ def kl_divergence(cov, nominal):
 
 
 def wasserstein_lmo_closed_form(direction, nominal, rho):
-    """argmax ⟨D, L⟩ s.t. 𝓑(L, N) ≤ ρ for D ⪰ 0, D ≠ 0 (algorithms.md A.1).
+    """argmax ⟨D, L⟩ s.t. 𝓑(L, N) ≤ ρ for D ⪰ 0, D ≠ 0 (the Gelbrich oracle).
 
     L = T N T with T = (I − tD)⁻¹, t ∈ (0, 1/d₁) the root of
     ρ² = Tr(N (tDT)²), found by Brent's method in eigen-coordinates.
@@ -189,7 +189,7 @@ def wasserstein_lmo_closed_form(direction, nominal, rho):
 
 
 def kl_lmo_closed_form(direction, nominal, c):
-    """argmax ⟨D, S⟩ s.t. KL(N(0,S) ‖ N(0,N)) ≤ c for D ⪰ 0, D ≠ 0 (algorithms.md B.3).
+    """argmax ⟨D, S⟩ s.t. KL(N(0,S) ‖ N(0,N)) ≤ c for D ⪰ 0, D ≠ 0 (the KL oracle).
 
     S = (N⁻¹ − tD)⁻¹ with t ∈ (0, 1/μ_max), μ = eig(Rᵀ D R), N = R Rᵀ, the root of
     ½ Σᵢ [1/(1 − tμᵢ) − 1 + ln(1 − tμᵢ)] = c.  Returns (S, t).
@@ -277,7 +277,7 @@ def set_lmo(spec, direction, nominal):
 
 
 def frank_wolfe(f, grad, lmos, start, rtol=1e-14, max_iter=5000):
-    """Adaptive-step Frank–Wolfe (algorithms.md A.2(b)) for a concave f over a product of sets.
+    """Backtracking Frank–Wolfe (docs/math/wasserstein.md) for a concave f over a product of sets.
 
     NumPy reference used to *polish* the SDP solutions: Clarabel's optimal values are
     accurate to ~1e-9 but its primal matrices only to ~1e-5..1e-4 (rank-deficient

@@ -1,9 +1,9 @@
-"""Independent CVXPY (Clarabel) and NumPy references for seed 004 (Jang, Hakobyan, Yang).
+"""Independent CVXPY (Clarabel) and NumPy references for Jang, Hakobyan & Yang (2025).
 
 NumPy in / NumPy out; does not import jax or jdrkf.
 
 * ``stationary_sdp``: the steady-state DR problem (13) in the authors' SDP form (14)
-  (reference-settings.md §6): maximize Tr X over X, X⁻, Σv, X̂⁻, Y, Z subject to
+  (as in the authors' code): maximize Tr X over X, X⁻, Σv, X̂⁻, Y, Z subject to
   [[X⁻ − X, X⁻Cᵀ], [C X⁻, C X⁻ Cᵀ + Σv]] ⪰ 0, X̂⁻ = A X Aᵀ + Σ̂w,
   Tr(X̂⁻ + X⁻ − 2Y) ≤ θx² with [[X̂⁻, Y], [Yᵀ, X⁻]] ⪰ 0, the same for Σv around Σ̂v,
   and Σv ⪰ λmin(Σ̂v) I.

@@ -1,4 +1,4 @@
-"""BCOT DR Kalman filter (Han 2023; algorithms.md §D.2) against independent oracles:
+"""BCOT DR Kalman filter (Han 2023; docs/math/steady_state.md) against independent oracles:
 a cvxpy + Clarabel SDP of the per-step problem (`bcot_oracle.py`), SciPy Bures
 distances, the NumPy Kalman filter (`oracles.py`) and finite differences."""
 

@@ -1,4 +1,4 @@
-"""Smoke tests of the seed-002 reproduction (`chen-fusion`): the scenario matches the
+"""Smoke tests of the Chen et al. (2025) reproduction (`chen-fusion`): the scenario matches the
 paper's eq. (34) and the authors' settings, and a tiny run produces Table I's rows. The
 filters and the solver are tested against independent oracles in test_fusion and
 test_marginal."""

@@ -1,4 +1,4 @@
-"""Closed-loop simulation (filter + LQR in one scan, seed 004) against independent NumPy
+"""Closed-loop simulation (filter + LQR in one scan, Jang et al. 2025) against independent NumPy
 re-implementations that replay the returned noise draws, and scipy's DARE."""
 
 import functools
@@ -15,7 +15,7 @@ from jdrkf._closed_loop import ClosedLoopResult, LQRController, closed_loop
 from jdrkf.sets import Moment
 
 
-# --- seed 004 system (reference-settings.md §6) ----------------------------------------------
+# --- the system of Jang, Hakobyan & Yang (2025), Sec. 5.2 ------------------------------------
 
 DT = 0.2
 A4 = np.array([[1, DT, 0, 0], [0, 1, 0, 0], [0, 0, 1, DT], [0, 0, 0, 1]], dtype=np.float64)
@@ -327,7 +327,7 @@ def test_bad_input():
         res.cost(np.eye(3), R_LQR)
     assert isinstance(res, ClosedLoopResult)
 
-# --- seed 004 smoke run ----------------------------------------------------------------------
+# --- Jang et al. smoke run ---------------------------------------------------------------------
 
 
 def test_seed004_smoke_and_vmap():

@@ -36,7 +36,7 @@ def _run_filter(filt, model, prior, ys, observed=None):
     return filt(model, prior, ys, observed=observed)
 
 
-# --- independent NumPy oracle of the published predictor (algorithms.md §C) ----------------
+# --- independent NumPy oracle of the published predictor (Zorzi 2017) ----------------------
 
 
 def _phi_table(s, tau):
@@ -75,7 +75,7 @@ def _robustify_np(P, tau, c):
 
 
 def published_tau_predictor(m0, P0, ys, A, C, Q, R, tau, c):
-    """Zorzi's one-step predictor, steps 1–3 of algorithms.md §C, started from the prior's
+    """Zorzi's one-step predictor, steps 1–3 of docs/math/divergence.md, started from the prior's
     prediction: x̂_1 = A m0, V_1 = robustify(A P0 Aᵀ + Q). Returns x̂_t, V_t, θ_t, P_t for
     t = 1..T (x̂_t uses y_1..y_{t-1}; ys[t-1] = y_t)."""
     x = A @ m0
@@ -135,7 +135,7 @@ def test_matches_published_predictor(rng, system, tau):
 
 
 def test_published_riccati_identity(rng):
-    # algorithms.md §C step 2: P_{t+1} = A V Aᵀ − G (C V Cᵀ + R) Gᵀ + Q = A Π Aᵀ + Q,
+    # Zorzi's step 2: P_{t+1} = A V Aᵀ − G (C V Cᵀ + R) Gᵀ + Q = A Π Aᵀ + Q,
     # with Π the filtered covariance of the update from V.
     F, H, Q, R = _random_system(rng)
     n = F.shape[0]

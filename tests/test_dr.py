@@ -76,7 +76,7 @@ def test_equal_moment_radii_is_fading_memory_kf(rng):
 
 
 def _numpy_huber_mkf(model, prior, ys, theta2, eps, k):
-    """Wang & Ye's Huber.m / MKF.m (m = 1), written from reference-settings.md §1."""
+    """Wang & Ye's Huber.m / MKF.m (m = 1), written from their code (Spratm-Asleaf/DRSE-Outlier)."""
     f, h, q, r = (np.asarray(x) for x in (model.F, model.H, model.Q, model.R))
     x, p = np.asarray(prior.mean), np.asarray(prior.cov)
     i_min = (1 - eps) * (1 - 2 * scipy.stats.norm.cdf(-k))
@@ -144,7 +144,7 @@ def test_wasserstein_kf_matches_sdp_recursion(getkey):
 
 
 def test_joint_kl_is_relative_entropy_update(rng):
-    # Theorem 10, case 7 (static form, algorithms.md §C): with a joint KL ball of budget c the
+    # Theorem 10, case 7 (static form, Levy & Nikoukhah 2013): with a joint KL ball of budget c the
     # worst-case posterior is (P⁻¹ − θI)⁻¹, P the nominal posterior, ½ Σ φ₀(θ pᵢ) = c, and the
     # estimate is the nominal one.
     model = _random_model(rng)
@@ -223,7 +223,7 @@ def test_covariances_stay_psd(seed, theta_x, theta_v):
     covs = np.asarray(res.filtered_covariances)
     np.testing.assert_allclose(covs, np.swapaxes(covs, 1, 2), atol=1e-12)
     assert np.all(np.linalg.eigvalsh(covs) > 0)
-    # The worst-case prior keeps the nominal's smallest eigenvalue (T ⪰ I, algorithms.md §A.1).
+    # The worst-case prior keeps the nominal's smallest eigenvalue (T ⪰ I in the Gelbrich oracle).
     lo = np.linalg.eigvalsh(res.info["nominal_prior_cov"])[:, 0]
     assert np.all(np.linalg.eigvalsh(res.predicted_covariances)[:, 0] >= lo * (1 - 1e-9))
 

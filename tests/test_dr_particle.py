@@ -1,4 +1,4 @@
-"""Tests of the distributionally robust particle filter (seed 003, Algorithm 2, Methods 1–7).
+"""Tests of the distributionally robust particle filter (Wang 2022, Algorithm 2, Methods 1–7).
 
 Oracles: `BootstrapPF` (a separate implementation) for the reductions; NumPy/SciPy
 re-implementations of Theorems 5 and 6 (`brentq` on the scalar dual) for Methods 1 and 5;

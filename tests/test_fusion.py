@@ -1,4 +1,4 @@
-"""Multi-sensor model and fusion filters (Chen et al. 2025, seed 002): MultiSensorModel,
+"""Multi-sensor model and fusion filters (Chen et al. 2025): MultiSensorModel,
 CKF, covariance intersection and the marginal DRKF, against independent NumPy / SciPy /
 CVXPY oracles (tests/fusion_oracle.py)."""
 
@@ -119,7 +119,7 @@ def test_model_views_match_numpy(rng):
 
 
 def test_paper_noise_covariance():
-    # reference-settings §5: b_i b_j q1 + diag(q1i), diagonal 5.25 / 8.64 / 10.16.
+    # the authors' MATLAB code (lylechan42/MDRKF): b_i b_j q1 + diag(q1i), diagonal 5.25 / 8.64 / 10.16.
     model = MultiSensorModel(np.eye(3), [np.eye(3)[i:i + 1] for i in range(3)], [[1.0]], [[[5.0]], [[8.0]], [[10.0]]],
                              G=np.ones((3, 1)), beta=[0.5, 0.8, 0.4])
     b = np.array([0.5, 0.8, 0.4])

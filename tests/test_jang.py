@@ -1,4 +1,4 @@
-"""Seed-004 experiments (`jang-convergence`, `jang-lqr`): small runs that check the
+"""Jang, Hakobyan & Yang (2025) experiments (`jang-convergence`, `jang-lqr`): small runs that check the
 pieces against the paper's setting and independent NumPy computations."""
 
 import jax

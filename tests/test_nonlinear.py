@@ -1,4 +1,4 @@
-"""`NonlinearModel`, `_simulate_nonlinear` and the noise laws' `log_prob` (seed 003).
+"""`NonlinearModel`, `_simulate_nonlinear` and the noise laws' `log_prob` (Wang 2022).
 
 Oracles: NumPy re-implementations of the model functions and of the simulation
 recursion fed with the same standard-normal draws (`jax.random.normal` on the

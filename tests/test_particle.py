@@ -1,4 +1,4 @@
-"""Bootstrap particle filter and resampling schemes (seed 003; docs/algorithms.md §G).
+"""Bootstrap particle filter and resampling schemes (Wang 2022; docs/math/particle.md).
 
 Oracles: closed-form count bounds and moments of the schemes; the Kalman filter on
 the matching linear-Gaussian model (large N, tolerances from the Monte Carlo error);
@@ -317,7 +317,7 @@ def test_growth_model_matches_numpy_pf(scheme, threshold, estimate):
     resampled = np.asarray(res.info["resampled"])
     assert resampled.all() if threshold >= 1 else (0 < resampled.sum() < resampled.size)
     rmse = float(jdrkf.metrics.rmse(tr.states[0], res.filtered_means))
-    assert rmse < 10.0  # sanity: the growth-model PF error is a few units (seed 003, Sec. V)
+    assert rmse < 10.0  # sanity: the growth-model PF error is a few units (Wang 2022, Sec. V)
 
 
 # --------------------------------------------------------------------------- jit / vmap / misc

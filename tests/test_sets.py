@@ -4,7 +4,7 @@ Oracles (tests/sdp_oracles.py): CVXPY/Clarabel SDPs of Wang & Ye 2022, eqs. (32)
 and Theorem 8, whose optimal *values* are accurate to ~1e-9; their worst-case
 covariances are polished by a NumPy Frank–Wolfe with a certified duality gap (the raw
 SDP matrices are only accurate to ~1e-4, see `frank_wolfe` there), and closed forms
-(algorithms.md §A.1, §A.2, §B.3; Theorem 5). The first section checks the oracles
+(docs/math/wasserstein.md; Theorem 5). The first section checks the oracles
 themselves; the rest checks jdrkf.sets.
 
 Run time is dominated by XLA compilation of the jdrkf solvers (seconds per problem

@@ -1,4 +1,4 @@
-"""θ_max of Jang, Hakobyan & Yang (seed 004, Proposition 1 / Theorem 2, eqs. 17–20).
+"""θ_max of Jang, Hakobyan & Yang (2025, Proposition 1 / Theorem 2, eqs. 17–20).
 
 Oracles: the paper's value (Section 5.1, θ_max = 3.356) and an independent NumPy/SciPy
 re-implementation written from the paper's formulas (symmetric square roots via
@@ -102,7 +102,7 @@ def _run(A, C, W, V, N, q, **kw):
 
 def test_paper_value():
     """Section 5.1: θ_max = 3.356 for N = 8, q = 20; intermediate values of an independent
-    NumPy recomputation (reference-settings.md §6)."""
+    NumPy recomputation (the authors' convergence_check.py)."""
     res = _run(PAPER["A"], PAPER["C"], PAPER["W"], PAPER["V"], 8, 20)
     assert isinstance(res, ThetaMax)
     assert bool(res.valid)

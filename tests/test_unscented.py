@@ -1,4 +1,4 @@
-"""`UnscentedKF` and `EnsembleKF` (seed 003's Gaussian-approximation filters).
+"""`UnscentedKF` and `EnsembleKF` (the Gaussian-approximation filters of Wang 2022).
 
 Oracles: filterpy's `UnscentedKalmanFilter` + `MerweScaledSigmaPoints`; a NumPy
 re-implementation of the authors' `UKF.m` (Simon 2006, eqs. (14.57)–(14.67)); the
@@ -36,7 +36,7 @@ def np_growth_f(x, t):
 GROWTH = NonlinearModel(growth_f, growth_h, 10.0 * jnp.eye(1), jnp.eye(1))
 GROWTH_PRIOR = jdrkf.Gaussian(jnp.zeros(1), jnp.eye(1))
 
-# Seed 003, Section V-B: CV target, range/bearing from a sensor moving along +y.
+# Wang (2022), Section V-B: CV target, range/bearing from a sensor moving along +y.
 DT = 0.5
 F_CV = np.kron(np.eye(2), np.array([[1.0, DT], [0.0, 1.0]]))
 G_CV = np.kron(np.eye(2), np.array([[DT**2 / 2], [DT]]))

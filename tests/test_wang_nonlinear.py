@@ -1,4 +1,4 @@
-"""Smoke tests of the seed-003 reproductions (`wang-growth`, `wang-methods`, `wang-tracking`)
+"""Smoke tests of the Wang (2022) reproductions (`wang-growth`, `wang-methods`, `wang-tracking`)
 at tiny sizes: structure, protocols and the paper's numbers attached. The filters
 themselves are tested against independent oracles in test_particle, test_dr_particle,
 test_unscented."""

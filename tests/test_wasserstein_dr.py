@@ -1,4 +1,4 @@
-"""Seed 004 (Jang, Hakobyan, Yang): the time-varying Wasserstein DRKF and the
+"""Jang, Hakobyan & Yang (2025): the time-varying Wasserstein DRKF and the
 steady-state DRKF, against the cvxpy SDP (14), a NumPy DR Riccati recursion driven by
 a certified Frank–Wolfe, the steady-state Kalman filter and finite differences."""
 
@@ -198,7 +198,7 @@ def test_drkf_positional_sets_as_documented():
     assert isinstance(flt.state_set, Wasserstein) and flt.throw is True
 
 
-# EM nominals of seed 004's LQR study (5 outputs; eigenvalues lifted to 1e-4): the optimality
+# EM nominals of Jang, Hakobyan & Yang's LQR study (5 outputs; eigenvalues lifted to 1e-4): the optimality
 # system also has a root with an indefinite adjoint Λ and a lower value (an unstable gain);
 # the solver must stay on the branch of the convex problem's KKT point.
 Q_EM = [[0.0007789979017225235, -0.001767063591106396, 3.308166160106838e-05, 0.0002085791437367776],
