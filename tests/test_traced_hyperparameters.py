@@ -17,7 +17,8 @@ import jdrkf
 from jdrkf._nonlinear import NonlinearModel
 from jdrkf.filters._bcot import BCOTKF, bcot_worst_case
 from jdrkf.filters._divergence import RiskSensitiveKF, TauKF
-from jdrkf.filters._reweighted import STKF, STKF_AR1, VBKF
+from jdrkf.filters._reweighted import RBKF, STKF, STKF_AR1, VBKF
+from jdrkf.sets import Barron, GaussianKernel
 from jdrkf.sets import (
     KL,
     EpsContamination,
@@ -85,6 +86,8 @@ FAMILIES = [
     ("stkf_nu", _linear, lambda p, throw: STKF(nu_y=p, throw=throw), 4.0, -4.0),
     pytest.param("stkf_ar1_rho", _linear, lambda p, throw: STKF_AR1(rho_y=p, throw=throw), 0.99, 1.5, marks=SLOW),
     ("vbkf_alpha", _linear, lambda p, throw: VBKF(alpha0=p, throw=throw), 50.0, -1.0),
+    ("rbkf_gaussian_kernel", _linear, lambda p, throw: RBKF(measurement_weight=GaussianKernel(p), throw=throw), 2.0, -2.0),
+    pytest.param("rbkf_barron", _linear, lambda p, throw: RBKF(process_weight=Barron(p), throw=throw), 1.0, 2.5, marks=SLOW),
     pytest.param("marginal_moment", _multisensor, lambda p, throw: jdrkf.MarginalDRKF(MarginalMoment(0.9, p), throw=throw), 1.1, 0.9, marks=SLOW),
     pytest.param("marginal_kl", _multisensor, lambda p, throw: jdrkf.MarginalDRKF(MarginalKL(p), throw=throw), 0.05, -0.05, marks=SLOW),
     pytest.param("dr_particle_theta", _nonlinear, lambda p, throw: jdrkf.DRParticleFilter(16, theta=p, throw=throw), 2.0, -2.0, marks=SLOW),

@@ -298,6 +298,13 @@ class RBKF(_IRLSFilter):
         self.max_iter, self.tol, self.fixed_iterations, self.covariance = max_iter, float(tol), fixed_iterations, covariance
         self.throw, self.outputs = throw, outputs
 
+    def _valid(self):
+        ok = jnp.asarray(True)
+        for weight in (self.process_weight, self.measurement_weight):
+            if weight is not None:
+                ok = ok & weight.valid()
+        return ok
+
     def _weights(self):
         return self.process_weight, self.measurement_weight
 

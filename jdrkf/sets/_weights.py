@@ -18,9 +18,12 @@ import abc
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from typing import ClassVar
+
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._validation import as_float_array, is_concrete
+from ._base import in_range
 
 __all__ = [
     "AbstractWeight",
@@ -74,7 +77,28 @@ def student_t_weight(e: Float[Array, " d"], nu: Float[ArrayLike, "*d"], tau2: Fl
 
 
 class AbstractWeight(eqx.Module):
-    """A componentwise weight `e ↦ d(e)` of a robust loss (`J'(e) = d(e) e`)."""
+    """A componentwise weight `e ↦ d(e)` of a robust loss (`J'(e) = d(e) e`).
+
+    `ranges` (class variable): each array field's interval, as keyword arguments of
+    `channel_param` — checked eagerly at construction and, traced, by `valid()`."""
+
+    ranges: ClassVar[dict[str, dict]] = {}
+
+    def _param(self, name: str, value: ArrayLike) -> Float[Array, "*d"]:
+        return channel_param(name, value, **self.ranges[name])
+
+    def valid(self) -> Bool[Array, ""]:
+        """Traced range check of every parameter (the filters turn `False` into
+        `RESULTS.invalid_hyperparameter`)."""
+        ok = jnp.asarray(True)
+        for name, spec in self.ranges.items():
+            upper = spec.get("upper")
+            ok = ok & in_range(
+                getattr(self, name), spec.get("lower", 0.0), np.inf if upper is None else upper,
+                lower_open=spec.get("lower_open", True), upper_open=spec.get("upper_open", False),
+                allow_inf=spec.get("allow_inf", False),
+            )
+        return ok
 
     @abc.abstractmethod
     def __call__(self, e: Float[Array, " d"]) -> Float[Array, " d"]:
@@ -95,10 +119,11 @@ class StudentT(AbstractWeight):
 
     nu: Float[Array, "*d"]
     tau2: Float[Array, "*d"]
+    ranges: ClassVar[dict[str, dict]] = {"nu": {"allow_inf": True}, "tau2": {}}
 
     def __init__(self, nu: Float[ArrayLike, "*d"] = 4.0, tau2: Float[ArrayLike, "*d"] = 1.0):
-        self.nu = channel_param("nu", nu, allow_inf=True)
-        self.tau2 = channel_param("tau2", tau2)
+        self.nu = self._param("nu", nu)
+        self.tau2 = self._param("tau2", tau2)
 
     def __call__(self, e):
         return student_t_weight(e, self.nu, self.tau2)
@@ -113,11 +138,12 @@ class GaussianKernel(AbstractWeight):
     sigma: Float[Array, "*d"]
     tau2: Float[Array, "*d"]
     floor: Float[Array, "*d"]
+    ranges: ClassVar[dict[str, dict]] = {"sigma": {"allow_inf": True}, "tau2": {}, "floor": {"lower_open": False}}
 
     def __init__(self, sigma: Float[ArrayLike, "*d"] = 2.0, tau2: Float[ArrayLike, "*d"] = 1.0, floor: Float[ArrayLike, "*d"] = 1e-8):
-        self.sigma = channel_param("sigma", sigma, allow_inf=True)
-        self.tau2 = channel_param("tau2", tau2)
-        self.floor = channel_param("floor", floor, lower_open=False)
+        self.sigma = self._param("sigma", sigma)
+        self.tau2 = self._param("tau2", tau2)
+        self.floor = self._param("floor", floor)
 
     def __call__(self, e):
         finite, s = _fin(self.sigma)
@@ -133,11 +159,12 @@ class Barron(AbstractWeight):
     sigma: Float[Array, "*d"]
     tau2: Float[Array, "*d"]
     floor: Float[Array, "*d"]
+    ranges: ClassVar[dict[str, dict]] = {"sigma": {"upper": 2.0}, "tau2": {}, "floor": {"lower_open": False}}
 
     def __init__(self, sigma: Float[ArrayLike, "*d"] = 1.0, tau2: Float[ArrayLike, "*d"] = 1.0, floor: Float[ArrayLike, "*d"] = 0.0):
-        self.sigma = channel_param("sigma", sigma, upper=2.0)
-        self.tau2 = channel_param("tau2", tau2)
-        self.floor = channel_param("floor", floor, lower_open=False)
+        self.sigma = self._param("sigma", sigma)
+        self.tau2 = self._param("tau2", tau2)
+        self.floor = self._param("floor", floor)
 
     def __call__(self, e):
         gauss = self.sigma >= 2.0
@@ -152,10 +179,11 @@ class PseudoHuber(AbstractWeight):
 
     sigma: Float[Array, "*d"]
     tau2: Float[Array, "*d"]
+    ranges: ClassVar[dict[str, dict]] = {"sigma": {"allow_inf": True}, "tau2": {}}
 
     def __init__(self, sigma: Float[ArrayLike, "*d"] = 1.0, tau2: Float[ArrayLike, "*d"] = 1.0):
-        self.sigma = channel_param("sigma", sigma, allow_inf=True)
-        self.tau2 = channel_param("tau2", tau2)
+        self.sigma = self._param("sigma", sigma)
+        self.tau2 = self._param("tau2", tau2)
 
     def __call__(self, e):
         finite, s = _fin(self.sigma)
@@ -168,9 +196,10 @@ class Huber(AbstractWeight):
     (HKF; `k = 1.345` gives 95% Gaussian efficiency). `k = inf` disables the channel."""
 
     k: Float[Array, "*d"]
+    ranges: ClassVar[dict[str, dict]] = {"k": {"allow_inf": True}}
 
     def __init__(self, k: Float[ArrayLike, "*d"] = 1.345):
-        self.k = channel_param("k", k, allow_inf=True)
+        self.k = self._param("k", k)
 
     def __call__(self, e):
         a = jnp.abs(e)
