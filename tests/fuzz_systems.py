@@ -195,7 +195,14 @@ def run_fuzz(cases, families_: dict | None = None, batch: int = 4, max_solve_che
     families_ = families() if families_ is None else families_
     totals = {name: Counts() for name in families_}
     notes: list[str] = []
-    for seed, n, m, cond_exp, marginal, dtype in cases:
+    # Grouped by shape and dtype: each group compiles every family once; the compiled code is
+    # dropped between groups (hundreds of executables would exhaust the process's mappings).
+    key = None
+    for seed, n, m, cond_exp, marginal, dtype in sorted(cases, key=lambda c: (c[1], c[2], np.dtype(c[5]).name)):
+        if key != (n, m, np.dtype(dtype).name):
+            key = (n, m, np.dtype(dtype).name)
+            _RUNNERS.clear()
+            jax.clear_caches()
         rng = np.random.default_rng(seed)
         systems = [random_system(rng, n, m, cond_exp, marginal) for _ in range(batch)]
         ys = [simulate(rng, *s) for s in systems]
