@@ -11,7 +11,7 @@ shape, and every run is classified:
 - `reported`: a result code other than `successful` (allowed: the filter said so);
 - `silent_nan`: `successful` but a non-finite output;
 - `silent_non_psd`: `successful` but a filtered covariance that is not symmetric positive
-  semidefinite within `psd_tolerance(dtype, n)` (relative to its largest eigenvalue);
+  semidefinite within `psd_tolerance(dtype, n)` (relative to its trace);
 - `wrong_solve`: `successful`, but the worst case of the last step disagrees with an
   independent NumPy solve (certified Frank–Wolfe, relative duality gap 1e-12) by more than
   `solve_tolerance(dtype)` (families with a per-step worst-case solver);
@@ -169,12 +169,12 @@ def check_batch(name: str, flt, systems, ys, dtype, max_solve_checks: int = 3) -
             notes.append(f"{name} system {b}: non-finite output marked successful")
             continue
         p = covs[b]
-        scale = np.maximum(np.abs(np.linalg.eigvalsh(0.5 * (p + np.swapaxes(p, -1, -2)))).max(axis=-1), np.finfo(dtype).tiny)
+        scale = np.maximum(np.abs(np.trace(p, axis1=-2, axis2=-1)), np.finfo(dtype).tiny)
         asym = np.abs(p - np.swapaxes(p, -1, -2)).max(axis=(-1, -2)) / scale
         lmin = np.linalg.eigvalsh(0.5 * (p + np.swapaxes(p, -1, -2)))[:, 0] / scale
         if np.any(asym > tol) or np.any(lmin < -tol):
             counts.silent_non_psd += 1
-            notes.append(f"{name} system {b}: filtered covariance asymmetry {asym.max():.2g}, min eig {lmin.min():.2g} (relative)")
+            notes.append(f"{name} system {b}: filtered covariance asymmetry {asym.max():.2g}, min eig {lmin.min():.2g} (relative to the trace)")
             continue
         if name in CHECKED_SOLVES and checked < max_solve_checks:
             checked += 1

@@ -41,6 +41,21 @@ def test_fuzz_fixed_case():
     assert all(c.ok + c.reported == 3 for c in totals.values())
 
 
+def test_fuzz_float32_covariance_breakdown_is_reported():
+    """A case the full run found: on a (3, 2) system with cond(Q), cond(R) = 1e8 the float32
+    Kalman filter's covariance becomes indefinite (λ_min = −8e-4 Tr P; TauKF −0.9 Tr P). It must
+    be reported (`RESULTS.indefinite_covariance`), never returned as successful."""
+    import jdrkf
+    from fuzz_systems import check_batch, random_system, simulate
+
+    rng = np.random.default_rng(926638543)
+    systems = [random_system(rng, 3, 2, 8.0, False) for _ in range(4)]
+    ys = [simulate(rng, *s) for s in systems]
+    counts, notes = check_batch("KalmanFilter", jdrkf.KalmanFilter(throw=False, outputs="all"), systems, ys, np.float32)
+    assert counts.violations == 0, notes
+    assert counts.reported >= 1
+
+
 @pytest.mark.slow
 @settings(max_examples=12, derandomize=True, deadline=None, suppress_health_check=list(HealthCheck))
 @given(case=cases)

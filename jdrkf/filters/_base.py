@@ -48,6 +48,12 @@ class RESULTS(eqx.Enumeration):
         "The filtered mean or covariance became non-finite (inf/NaN). Common causes: inf in the "
         "inputs, an unstable model over a long horizon in float32, or an upstream bug."
     )
+    indefinite_covariance = (
+        "The filtered covariance lost positive semidefiniteness beyond rounding (its smallest "
+        "eigenvalue fell below -100 n eps Tr P): the covariance recursion is numerically unstable "
+        "in this precision, typically float32 on an ill-conditioned system (noise covariances with "
+        "condition numbers near 1/eps). Run in float64 or rescale the state."
+    )
     nan_observation = (
         "An observation that the filter was told to use is NaN. To treat NaN entries as missing, "
         "pass observed=~jnp.isnan(ys) (a boolean mask of the entries to use) to the filter call."

@@ -86,13 +86,23 @@ def update(
     return Gaussian(mean, cov), loglik, failed
 
 
+def _is_psd(cov: Float[Array, "n n"]) -> Bool[Array, ""]:
+    """`λ_min(cov) ≥ −c n eps · Tr cov` (`c` of `psd_rtol`): the Cholesky factor of
+    `cov + c n eps Tr(cov) I` is finite. False for non-finite entries."""
+    n = cov.shape[-1]
+    shift = psd_rtol(cov.dtype, n) * jnp.abs(jnp.trace(cov))
+    return jnp.all(jnp.isfinite(linalg.cholesky(cov + shift * jnp.eye(n, dtype=cov.dtype))))
+
+
 def _step_result(failed, belief: Gaussian) -> RESULTS:
     """Per-step code from the covariance path (the means are checked once per run by
-    `AbstractFilter.__call__`, so this costs nothing per run when the covariances are shared)."""
+    `AbstractFilter.__call__`, so this costs nothing per run when the covariances are shared):
+    a failed update, a non-finite covariance, or one that lost positive semidefiniteness
+    beyond rounding (float32 on ill-conditioned systems)."""
     finite = jnp.all(jnp.isfinite(belief.cov))
-    return RESULTS.where(
-        failed, RESULTS.nonpositive_innovation, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_state)
-    )
+    psd = _is_psd(belief.cov)
+    code = RESULTS.where(psd, RESULTS.successful, RESULTS.indefinite_covariance)
+    return RESULTS.where(failed, RESULTS.nonpositive_innovation, RESULTS.where(finite, code, RESULTS.nonfinite_state))
 
 
 class KalmanFilter(AbstractFilter):
