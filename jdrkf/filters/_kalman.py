@@ -88,9 +88,10 @@ def update(
 
 def _is_psd(cov: Float[Array, "n n"]) -> Bool[Array, ""]:
     """`λ_min(cov) ≥ −c n eps · Tr cov` (`c` of `psd_rtol`): the Cholesky factor of
-    `cov + c n eps Tr(cov) I` is finite. False for non-finite entries."""
+    `cov + (c n eps Tr(cov) + tiny) I` is finite (singular PSD matrices, zero included, pass).
+    False for non-finite entries."""
     n = cov.shape[-1]
-    shift = psd_rtol(cov.dtype, n) * jnp.abs(jnp.trace(cov))
+    shift = psd_rtol(cov.dtype, n) * jnp.abs(jnp.trace(cov)) + jnp.finfo(cov.dtype).tiny
     return jnp.all(jnp.isfinite(linalg.cholesky(cov + shift * jnp.eye(n, dtype=cov.dtype))))
 
 
