@@ -67,6 +67,21 @@ def _run_chunk(filters, model, true_model, prior, chunk: Trajectories, keys, met
 _run_chunk_jit = eqx.filter_jit(_run_chunk)
 
 
+def _global_array(a: np.ndarray, sharding: NamedSharding) -> Array:
+    """The run-sharded global array of `a`: every process holds all of `a` and gives each of
+    its devices that device's slice (one process: the same as `jax.device_put`)."""
+    return jax.make_array_from_callback(a.shape, sharding, lambda index: a[index])
+
+
+def _to_host(a: Array) -> np.ndarray:
+    """All of a run-sharded result on this host; across processes, gathered from all of them."""
+    if jax.process_count() == 1:
+        return np.asarray(a)
+    from jax.experimental import multihost_utils
+
+    return np.asarray(multihost_utils.process_allgather(a, tiled=True))
+
+
 def montecarlo(
     filters: Mapping[str, AbstractFilter | Clairvoyant],
     model: LinearModel,
@@ -97,9 +112,15 @@ def montecarlo(
     - `key`: base key for stochastic filters; run `r` gets `fold_in(key, r)` for
       every filter (common random numbers).
     - `chunk_size`: runs per compiled call, bounding memory; the run axis of each
-      chunk is sharded across all local devices (`jax.sharding`), padded to a
-      multiple of the device count.
+      chunk is sharded across all devices (`jax.sharding`), padded to a multiple of
+      the device count.
     - `progress`: show a progress bar over chunks (needs `tqdm`).
+
+    **Several processes or hosts.** After `jax.distributed.initialize(...)` in every
+    process, call `montecarlo` with the same arguments in each (JAX's multi-controller
+    model: every process simulates the same trajectories from the same key). The runs of
+    each chunk are split over the devices of all processes, and every process returns the
+    full results, equal bit for bit to a single process's on CPU.
 
     **Returns:** `{filter_name: {metric_name: np.ndarray of shape (runs, ...)}}`.
     Filters run with their own `throw` setting; use `throw=False` to keep going past
@@ -114,9 +135,11 @@ def montecarlo(
     metrics = dict(DEFAULT_METRICS if metrics is None else metrics)
     true_model = model if true_model is None else true_model
     num_runs = trajectories.num_runs
-    run_keys = None if key is None else jax.vmap(lambda r: jax.random.fold_in(key, r))(jnp.arange(num_runs))
+    if key is not None and not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jax.random.wrap_key_data(key)  # a legacy uint32 key
+    run_key_data = None if key is None else jax.random.key_data(jax.vmap(lambda r: jax.random.fold_in(key, r))(jnp.arange(num_runs)))
 
-    devices = jax.local_devices()
+    devices = jax.devices()  # every device of every process (one process: the local ones)
     sharding = NamedSharding(Mesh(np.asarray(devices), ("runs",)), PartitionSpec("runs"))
     chunk = min(chunk_size, num_runs)
     chunk = -(-chunk // len(devices)) * len(devices)
@@ -132,10 +155,10 @@ def montecarlo(
     for start in starts:
         stop = min(start + chunk, num_runs)
         idx = np.minimum(np.arange(start, start + chunk), num_runs - 1)  # pad with the last run
-        data = jax.tree.map(lambda a: a[idx], (trajectories, run_keys))
-        data = jax.device_put(data, sharding)
-        out = _run_chunk_jit(dict(filters), model, true_model, prior, data[0], data[1], metrics, missing, clean_missing)
-        pieces.append(jax.tree.map(lambda a: np.asarray(a)[: stop - start], out))
+        data = jax.tree.map(lambda a: _global_array(np.asarray(a)[idx], sharding), (trajectories, run_key_data))
+        keys = None if key is None else jax.random.wrap_key_data(data[1], impl=jax.random.key_impl(key))
+        out = _run_chunk_jit(dict(filters), model, true_model, prior, data[0], keys, metrics, missing, clean_missing)
+        pieces.append(jax.tree.map(lambda a: _to_host(a)[: stop - start], out))
     out = jax.tree.map(lambda *a: np.concatenate(a, axis=0), *pieces)
     # JAX flattens dicts in sorted key order, so its outputs are sorted: restore the caller's order.
     return {name: {m: out[name][m] for m in (*metrics, "success")} for name in filters}
