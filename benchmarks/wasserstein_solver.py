@@ -674,7 +674,7 @@ def bench_profile(args, jax, jnp, wd):
     """Where the single solve spends its time.
 
     Benchmark-only calls of private `jdrkf.sets._solve` functions (`_frank_wolfe`,
-    `_decoupled_objective`, `_dense_solve`) and a replica of the library's Newton polish
+    `_decoupled_objective`; `jdrkf._root.dense_solve`) and a replica of the library's Newton polish
     step (as in `_solve`, without `custom_root`), so that Frank–Wolfe and polish steps
     can be timed separately. The library is not modified. A failing row (private API
     changed) is recorded, not fatal.
@@ -684,6 +684,7 @@ def bench_profile(args, jax, jnp, wd):
 
     from jdrkf.sets import Wasserstein, wasserstein_mmse
     from jdrkf.sets import _solve as S
+    from jdrkf import _root as R
 
     dtype = args.dtype
     c = lambda a: jnp.asarray(a, dtype=dtype)
@@ -726,7 +727,7 @@ def bench_profile(args, jax, jnp, wd):
 
         def newton(x):  # replica of the library's polish step
             r = residual(x)
-            dx = S._dense_solve(lambda v: jax.jvp(residual, (x,), (v,))[1], r)
+            dx = R.dense_solve(lambda v: jax.jvp(residual, (x,), (v,))[1], r)
             x_new = jax.tree.map(lambda p, q: p - q, x, dx)
             better = ravel_pytree(residual(x_new))[0]
             better = jnp.all(jnp.isfinite(better)) & (jnp.linalg.norm(better) < jnp.linalg.norm(ravel_pytree(r)[0]))

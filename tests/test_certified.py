@@ -96,3 +96,43 @@ def test_em_with_zero_iterations_is_not_converged(rng):
     res = jdrkf.em_noise_covariances(model.F, model.H, traj.observations[0], jnp.zeros(2), jnp.eye(2), max_iter=0)
     assert int(res.iterations) == 0
     assert not bool(res.converged)
+
+
+@pytest.fixture
+def fresh_compilation():
+    """Compiled solvers are cached per shape: drop them before and after a test that
+    patches a solver's constants."""
+    jax.clear_caches()
+    yield
+    jax.clear_caches()
+
+
+@pytest.mark.parametrize("kind", ["moment", "kl"])
+def test_marginal_barrier_cut_short_is_not_converged(monkeypatch, fresh_compilation, kind):
+    from jdrkf.sets import _marginal
+
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(4, 4))
+    cov = a @ a.T + np.eye(4)
+    st = _marginal.MarginalMoment(0.7, 1.5) if kind == "moment" else _marginal.MarginalKL(0.3)
+    exact = _marginal.marginal_mmse(cov, 2, (1, 1), st)
+    assert bool(exact.converged) and bool(exact.polished)
+    # One Newton step per barrier stage and none at the final weight: the path stops far
+    # from the optimum, which the duality-gap certificate must notice.
+    monkeypatch.setattr(_marginal, "_NEWTON_PER_STAGE", 1)
+    monkeypatch.setattr(_marginal, "_NEWTON_FINAL", 0)
+    jax.clear_caches()
+    early = _marginal.marginal_mmse(cov, 2, (1, 1), st)
+    assert not bool(early.converged) and not bool(early.polished)
+
+
+def test_maxent_transport_infeasible_budget_is_not_converged():
+    q = jnp.array([0.2, 0.3, 0.5])
+    cost = jnp.array([[0.5, 1.0], [0.2, 0.4], [1.0, 0.3]])
+    c_min = float(q @ jnp.min(cost, axis=1))
+    solve = jax.jit(lambda theta: jdrkf.sets.maxent_transport_solve(q, cost, theta))
+    ok = solve(c_min + 0.1)
+    assert bool(ok.converged) and bool(ok.feasible)
+    bad = solve(0.5 * c_min)  # traced: no eager ValueError
+    assert not bool(bad.feasible)
+    assert not bool(bad.converged)

@@ -65,10 +65,10 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .. import linalg
 from .._gaussian import Gaussian
+from .._root import implicit_root, newton
 from .._validation import as_float_array, check_covariance
 from ..sets._base import in_range
 from ..sets._base import radius as _radius
-from ..sets._solve import _dense_solve
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
@@ -230,57 +230,20 @@ def _initial(params):
 
 
 def _newton(params, x0, max_iter):
-    """Damped Newton on the optimality system; Armijo on `G` keeps iterates in the domain."""
+    """Damped Newton on the optimality system with Armijo backtracking on `G` (infinite
+    off the domain, so iterates stay in it); stops after a full step of max-norm
+    `≤ √eps (1 + ‖x‖∞)`."""
+
+    def objective(x):
+        f0, gam, ok = _dual_terms(x, params)
+        return jnp.where(ok, f0 + params[0] * gam, jnp.inf)
+
+    # ∇G = scale · residual: the s and Z rows of the residual are ∇Γ = ∇G / θ.
     theta = params[0]
-    flat0, unravel = ravel_pytree(x0)
-    dtype = flat0.dtype
-    eps = jnp.finfo(dtype).eps
-    xtol = float(eps) ** 0.5
-    res_fn = _residual(params)
-    nk = x0[0].size
-    # ∇G = scale * residual (the s and Z rows of the residual are ∇Γ = ∇G / θ).
-    scale = jnp.concatenate([jnp.ones(nk, dtype), jnp.full(flat0.size - nk, theta, dtype)])
-
-    def flat_res(v):
-        r = ravel_pytree(res_fn(unravel(v)))[0]
-        return r, r
-
-    def merit(v):
-        f0, gam, ok = _dual_terms(unravel(v), params)
-        return jnp.where(ok, f0 + theta * gam, jnp.inf), jnp.abs(f0) + theta * jnp.abs(gam)
-
-    def cond(c):
-        return (~c[2]) & (c[1] < max_iter)
-
-    def body(c):
-        v, k, _, g, mag = c
-        jac, r = jax.jacfwd(flat_res, has_aux=True)(v)
-        p = -jnp.linalg.solve(jac, r)
-        grad = scale * r
-        slope = jnp.vdot(grad, p)
-        bad = ~jnp.all(jnp.isfinite(p)) | (slope > 0)
-        p = jnp.where(bad, -r, p)
-        slope = jnp.where(bad, -jnp.vdot(grad, r), slope)
-        slack = 10 * eps * mag
-
-        def ls_cond(b):
-            return (~b[1]) & (b[2] < _LINE_SEARCH_MAX)
-
-        def ls_body(b):
-            alpha, _, j, _, _ = b
-            alpha = jnp.where(j == 0, alpha, 0.5 * alpha)
-            trial, trial_mag = merit(v + alpha * p)
-            return alpha, trial <= g + 1e-4 * alpha * slope + slack, j + 1, trial, trial_mag
-
-        ls0 = (jnp.ones((), dtype), jnp.zeros((), bool), 0, g, mag)
-        alpha, ok, _, g_new, mag_new = lax.while_loop(ls_cond, ls_body, ls0)
-        v_new = jnp.where(ok, v + alpha * p, v)
-        done = ok & (alpha == 1) & ~bad & (jnp.max(jnp.abs(p)) <= xtol * (1 + jnp.max(jnp.abs(v))))
-        return v_new, k + 1, done, jnp.where(ok, g_new, g), jnp.where(ok, mag_new, mag)
-
-    g0, mag0 = merit(flat0)
-    v, k, done, _, _ = lax.while_loop(cond, body, (flat0, jnp.zeros((), int), jnp.zeros((), bool), g0, mag0))
-    return unravel(v), k, done
+    scale = (jnp.ones_like(x0[0]), theta * jnp.ones_like(x0[1]), theta * jnp.ones_like(x0[2]))
+    xtol = float(jnp.finfo(theta.dtype).eps) ** 0.5
+    return newton(_residual(params), x0, max_iter, objective=objective, gradient_scale=scale, xtol=xtol,
+                  max_backtracks=_LINE_SEARCH_MAX)
 
 
 def _primal(x, params):
@@ -308,16 +271,15 @@ def _solve(prior_cov, process_cov, noise_cov, a, c, radius, max_iter) -> BCOTWor
     theta = jnp.sqrt(radius).astype(dtype)
     params = (theta, prior_cov, process_cov, noise_cov, a, c)
 
-    def solve(_, guess):
+    def solve(guess):
         del guess
         p_ = jax.tree.map(lax.stop_gradient, params)
-        x, iters, done = _newton(p_, _initial(p_), max_iter)
-        resid = jnp.max(jnp.abs(ravel_pytree(_residual(p_)(x))[0]))
-        return x, (iters.astype(dtype), resid, done.astype(dtype))
+        x, iters, _, done = _newton(p_, _initial(p_), max_iter)
+        return x, (iters, jnp.max(jnp.abs(ravel_pytree(_residual(p_)(x))[0])), done)
 
     n, m = a.shape[0], c.shape[0]
     guess = (jnp.zeros((n, m), dtype), jnp.ones((), dtype), jnp.zeros((n, m), dtype))
-    x, (iters, resid, done) = lax.custom_root(_residual(params), guess, solve, _dense_solve, has_aux=True)
+    x, (iters, resid, done) = implicit_root(_residual(params), solve, guess)
     sig, q, r = _primal(x, params)
     value = _posterior_trace(sig, q, r, a, c)
     f0, gam, _ = _dual_terms(x, params)
@@ -334,10 +296,10 @@ def _solve(prior_cov, process_cov, noise_cov, a, c, radius, max_iter) -> BCOTWor
         gain=x[0],
         value=value,
         multiplier=multiplier,
-        iterations=iters.astype(int),
+        iterations=iters,
         residual=resid,
         gap=gap,
-        converged=(done > 0) & certified & finite & in_range(radius, 0.0),
+        converged=done & certified & finite & in_range(radius, 0.0),
     )
 
 

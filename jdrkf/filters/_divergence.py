@@ -17,10 +17,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
+from .._root import bracketed_newton
 from .._validation import as_float_array, is_concrete
 from ..sets._base import in_range
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
@@ -117,8 +117,6 @@ def _solve_s(r, tau, c):
     Newton on a bracket. `h` is increasing and convex; `φ_τ(s) ≥ s²/2` makes
     `sqrt(2c/Σ r_i²)` an upper end with `h ≥ 0`, from which Newton decreases
     monotonically. Steps leaving the bracket are replaced by bisection."""
-    dtype = r.dtype
-    eps = jnp.finfo(dtype).eps
     w = 1 - tau
     pole = jnp.where(w > 0, 1 / jnp.where(w > 0, w, 1.0), jnp.inf)
     bound = jnp.sqrt(2 * c / jnp.sum(r * r))
@@ -126,24 +124,11 @@ def _solve_s(r, tau, c):
     hi0 = jnp.where(from_bound, bound, pole)
     x0 = jnp.where(from_bound, bound, 0.5 * pole)
 
-    def body(state):
-        lo, hi, x, _, it = state
+    def h(x):
         sx = x * r
-        hx = jnp.sum(_phi(sx, tau)) - c
-        dhx = jnp.sum(r * _phi_prime(sx, tau))
-        lo = jnp.where(hx <= 0, x, lo)
-        hi = jnp.where(hx > 0, x, hi)
-        newton = x - hx / dhx
-        ok = jnp.isfinite(newton) & (newton >= lo) & (newton <= hi)
-        x_new = jnp.where(ok, newton, 0.5 * (lo + hi))
-        return lo, hi, x_new, jnp.abs(x_new - x), it + 1
+        return jnp.sum(_phi(sx, tau)) - c, jnp.sum(r * _phi_prime(sx, tau))
 
-    def cond(state):
-        lo, hi, x, step, it = state
-        return (step > 4 * eps * x) & (hi - lo > 4 * eps * hi) & (it < _ROOT_MAX_ITER)
-
-    init = (jnp.zeros((), dtype), hi0, x0, jnp.asarray(jnp.inf, dtype), jnp.asarray(0))
-    return lax.while_loop(cond, body, init)[2]
+    return bracketed_newton(h, x0, 0.0, hi0, _ROOT_MAX_ITER, has_slope=True).x
 
 
 def _theta_of_eigenvalues(lam, tau, c):

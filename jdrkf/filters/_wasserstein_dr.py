@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -17,8 +16,9 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 from .. import linalg
 from .._gaussian import Gaussian
 from .._models import LinearModel
+from .._root import default_rtol, implicit_root, newton
 from ..sets._base import in_range, radius
-from ..sets._solve import _dense_solve, default_rtol, worst_case
+from ..sets._solve import worst_case
 from ..sets._wasserstein import Wasserstein, _oracle_residual
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter
 from ._dr import _decoupled_step
@@ -252,47 +252,6 @@ def _oracle_step(a, h, w, v, theta_x, theta_v, x):
     return pack(prior, noise, mx, mv, lam)
 
 
-def _merit(residual, in_domain, x):
-    """`‖F(x)‖`, or `inf` outside the domain or where `F` is not finite."""
-    r = residual(x)
-    return jnp.where(jnp.all(jnp.isfinite(r)) & in_domain(x), jnp.linalg.norm(r), jnp.inf)
-
-
-def _newton(residual, x0, max_iter, in_domain):
-    """Newton's method with backtracking on `‖F‖` and a dense Jacobian (`jacfwd`);
-    trial points outside `in_domain` (or with non-finite residuals) are rejected."""
-    dtype = x0.dtype
-    eps = jnp.finfo(dtype).eps
-
-    merit = functools.partial(_merit, residual, in_domain)
-
-    def cond(c):
-        x, k, nr, stalled = c
-        return (k < max_iter) & ~stalled & (nr > 10 * eps * (1.0 + jnp.linalg.norm(x)))
-
-    def body(c):
-        x, k, nr, _ = c
-        jac, r = jax.jacfwd(lambda y: (residual(y), residual(y)), has_aux=True)(x)
-        dx = jnp.linalg.solve(jac, r)
-
-        def ls_cond(b):
-            step, nt, j = b
-            return (nt >= (1.0 - 1e-4 * step) * nr) & (j < 40)
-
-        def ls_body(b):  # backtracking (Armijo on ‖F‖): steps 1, 1/2, 1/4, …
-            step, _, j = b
-            step = jnp.where(j == 0, step, 0.5 * step)
-            return step, merit(x - step * dx), j + 1
-
-        step, nt, _ = lax.while_loop(ls_cond, ls_body, (jnp.ones((), dtype), jnp.asarray(jnp.inf, dtype), 0))
-        ok = nt < nr
-        return jnp.where(ok, x - step * dx, x), k + 1, jnp.where(ok, nt, nr), ~ok
-
-    init = (x0, jnp.zeros((), int), merit(x0), jnp.zeros((), bool))
-    x, k, nr, _ = lax.while_loop(cond, body, init)
-    return x, k, nr, nr <= default_rtol(dtype) * (1.0 + jnp.linalg.norm(x))
-
-
 def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
     """Solve the optimality system for radii `τ(θx, θv)`, `τ: 0 → 1`. At `τ = 0` the
     initial guess is exact (the nominal steady state and its adjoint); each stage is
@@ -324,7 +283,10 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
         x, tau, dtau, iters, nr, ok = c
         t = jnp.minimum(tau + dtau, 1.0)
         residual = _stationary_residual(a, h, w, v, t * theta_x, t * theta_v)
-        merit = functools.partial(_merit, residual, in_domain)
+
+        def merit(y):
+            r = residual(y)
+            return jnp.where(jnp.all(jnp.isfinite(r)) & in_domain(y), jnp.linalg.norm(r), jnp.inf)
 
         def sweep(i, c):
             y, best, nb = c
@@ -334,7 +296,9 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
             return y, jnp.where(better, y, best), jnp.where(better, ny, nb)
 
         _, xp, _ = lax.fori_loop(0, _SWEEPS, sweep, (x, x, merit(x)))
-        xt, k, nrt, okt = _newton(residual, xp, max_iter, in_domain)
+        eps = jnp.finfo(dtype).eps
+        xt, k, nrt, _ = newton(residual, xp, max_iter, in_domain=in_domain, ftol=10 * eps)
+        okt = nrt <= default_rtol(dtype) * (1.0 + jnp.linalg.norm(xt))
         return (jnp.where(okt, xt, x), jnp.where(okt, t, tau), jnp.where(okt, 2.0 * dtau, 0.5 * dtau), iters + k,
                 jnp.where(okt, nrt, nr), okt)
 
@@ -353,18 +317,17 @@ def _steady_state(a, h, w, v, theta_x, theta_v, max_iter):
 def _steady_state_impl(a, h, w, v, theta_x, theta_v, max_iter):
     params = (a, h, w, v, theta_x, theta_v)
 
-    def solve(_, guess):
+    def solve(guess):
         del guess
-        p = jax.tree.map(lax.stop_gradient, params)
-        x, k, nr, ok = _continuation(*p, max_iter)
-        return x, (k.astype(nr.dtype), nr, ok.astype(nr.dtype))
+        x, k, nr, ok = _continuation(*jax.tree.map(lax.stop_gradient, params), max_iter)
+        return x, (k, nr, ok)
 
     guess = _initial_guess(*jax.tree.map(lax.stop_gradient, (a, h, w, v)))
-    x, (k, nr, ok) = lax.custom_root(_stationary_residual(*params), guess, solve, _dense_solve, has_aux=True)
+    x, (k, nr, ok) = implicit_root(_stationary_residual(*params), solve, guess)
     prior, noise, _, _, lam = _layout(a.shape[0], h.shape[0])[1](x)
     noise = jnp.where(theta_v == 0, v, noise)  # exact at zero radius
     post, gain = _posterior(prior, noise, h)
-    converged = (ok > 0) & in_range(theta_x, 0.0) & in_range(theta_v, 0.0)
+    converged = ok & in_range(theta_x, 0.0) & in_range(theta_v, 0.0)
     return SteadyStateDR(
         gain=gain,
         prior_cov=prior,
@@ -373,7 +336,7 @@ def _steady_state_impl(a, h, w, v, theta_x, theta_v, max_iter):
         nominal_prior_cov=linalg.symmetrize(a @ post @ a.T + w),
         value=jnp.trace(post),
         adjoint=lam,
-        iterations=k.astype(int),
+        iterations=k,
         residual=nr,
         converged=converged,
     )

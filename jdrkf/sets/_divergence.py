@@ -7,6 +7,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
+from .._root import bracketed_newton
 from ._base import AbstractAmbiguitySet, in_range, radius
 
 _NEWTON_MAX_ITER = 200
@@ -82,18 +83,10 @@ class KL(AbstractAmbiguitySet):
             w = 1.0 / (1.0 - t * mu)
             return 0.5 * jnp.sum(_phi(t * mu)) - c, 0.5 * jnp.sum(t * mu * mu * w * w)
 
-        def cond(carry):
-            t, t_prev, k = carry
-            return (k < _NEWTON_MAX_ITER) & (jnp.abs(t - t_prev) > 4 * jnp.finfo(t.dtype).eps * t)
-
-        def body(carry):
-            t, _, k = carry
-            g, dg = g_and_slope(t)
-            return jnp.maximum(t - g / dg, 0.0), t, k + 1
-
-        # Start right of the root: ½ φ(1 − δ) ≥ c for δ = 1/(4c + 20).
+        # Start right of the root: ½ φ(1 − δ) ≥ c for δ = 1/(4c + 20). Convex and
+        # increasing in t on [0, 1/μ_max): Newton decreases monotonically to the root.
         t0 = (1.0 - 1.0 / (4.0 * c + 20.0)) / mu_max
-        t, _, _ = lax.while_loop(cond, body, (t0, 2 * t0, 0))
+        t = bracketed_newton(g_and_slope, t0, 0.0, 1.0 / mu_max, _NEWTON_MAX_ITER, has_slope=True).x
         rq = r @ q
         cov = linalg.symmetrize((rq / (1.0 - t * mu)) @ rq.T)
         return jnp.where(active, cov, nominal), jnp.where(active, t, 0.0)

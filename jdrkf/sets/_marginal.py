@@ -47,9 +47,9 @@ from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
+from .._root import default_rtol, implicit_root, newton
 from .._validation import as_float_array, check_covariance, is_concrete
 from ._base import in_range
-from ._solve import default_rtol
 
 _DYKSTRA_MAX_ITER = 200
 _BISECT_ITER = 80
@@ -113,11 +113,16 @@ class MarginalWorstCase(eqx.Module):
     - `cov`: worst-case joint covariance `S*` of `(x, y¹, …, yᵖ)`;
     - `gain`: `K* = S*_xy S*_yy⁻¹`; `posterior_cov`: `S*/S*_yy = S*_xx − K* S*_yx`;
     - `value`: `Tr(S*/S*_yy)`;
-    - `polished`: the barrier path was used and converged (Newton decrement² ≤ 1e-3 μ);
+    - `polished`: the barrier path was used and is certified: its point is strictly
+      feasible and its optimality gap bound (from the Newton decrement of the linearized
+      barrier problem, `_barrier_gap`) is at most `2νμf₀`, twice the barrier's own
+      accuracy (`ν` the barrier size, `μ` its final weight, `f₀ ≤ value` the nominal
+      value; ~1e-7 relative in float64);
     - `iterations`, `residual`: projected-gradient iterations and relative size of its
-      last step (0 and 0 when the set has an interior and the barrier path is used);
-    - `converged`: `polished`, or the projected gradient reached `rtol`; `False` when a
-      traced radius is out of range (`set.valid()`).
+      last step (`inf` if its line search failed; 0 and 0 when the set has an interior
+      and the barrier path is used);
+    - `converged`: `polished` when the set has an interior, else the projected gradient
+      reached `rtol`; `False` when a traced radius is out of range (`set.valid()`).
     """
 
     cov: Float[Array, "d d"]
@@ -277,7 +282,8 @@ def _projected_gradient(fg, proj, z0, rtol, max_iter):
 
         eta, zt, ok, _ = lax.while_loop(bt_cond, bt_body, (eta, z, jnp.zeros((), bool), 0))
         zt = jnp.where(ok, zt, z)
-        res = jnp.sqrt(jnp.sum((zt - z) ** 2)) / jnp.sqrt(jnp.sum(zt * zt))
+        # A line search that finds no ascent ends the loop unconverged (residual `inf`).
+        res = jnp.where(ok, jnp.sqrt(jnp.sum((zt - z) ** 2)) / jnp.sqrt(jnp.sum(zt * zt)), jnp.inf)
         done = (res <= rtol) | ~ok
         return zt, 1.5 * eta, k + 1, done, res
 
@@ -340,35 +346,41 @@ def _barrier_fn(kind, n, dims, blocks, tri):
     return F, dF, unvec
 
 
-def _newton(F, dF, v, args, mu_of, steps):
-    """Damped Newton ascent on `F(·, *args, mu_of(k))` for `steps` steps (one traced body);
-    `dF` is its gradient."""
-    grad_f = dF
-    hess_f = jax.jacfwd(dF)
+def _barrier_path(F, dF, v, args, mu_final, stages):
+    """Path following: damped Newton ascent (`newton` on `−F`, whose gradient is `−dF`)
+    on `F(·, *args, μ)` for `μ = _MU0 · 10⁻ⁱ`, `i = 0, …, stages − 1`
+    (`_NEWTON_PER_STAGE` steps each), then `_NEWTON_FINAL` steps at `μ = mu_final`. There
+    is no step-size stopping test: near the boundary the barrier Hessian is large
+    (`~μ/slack²`), so a small step does not mean a small gradient; a stage ends early only
+    when its line search finds no ascent (at round-off)."""
 
-    def step(k, v):
-        mu = mu_of(k)
-        val = F(v, *args, mu)
-        gr = grad_f(v, *args, mu)
-        h = hess_f(v, *args, mu)
-        d = -jnp.linalg.solve(h, gr)
-        slope = jnp.sum(gr * d)
+    def stage(i, v):
+        mu = jnp.maximum(_MU0 * jnp.asarray(10.0, v.dtype) ** (-i.astype(v.dtype)), mu_final)
+        max_iter = jnp.where(i < stages, _NEWTON_PER_STAGE, _NEWTON_FINAL)
+        return newton(lambda u: -dF(u, *args, mu), v, max_iter, objective=lambda u: -F(u, *args, mu)).x
 
-        def bt_cond(c):
-            t, ok, j = c
-            return (~ok) & (j < _BACKTRACK_MAX)
+    return lax.fori_loop(0, stages + 1, stage, v)
 
-        def bt_body(c):
-            t, _, j = c
-            new = F(v + t * d, *args, mu)
-            ok = jnp.isfinite(new) & (new >= val + 1e-4 * t * slope)
-            return jnp.where(ok, t, 0.5 * t), ok, j + 1
 
-        t, ok, _ = lax.while_loop(bt_cond, bt_body, (jnp.ones((), v.dtype), jnp.zeros((), bool), 0))
-        good = ok & jnp.all(jnp.isfinite(d)) & (slope > 0)
-        return jnp.where(good, v + t * d, v)
+def _barrier_gap(kind, dF, v, args, mu, n, dims):
+    """Bound on `(max f − f(Z))/f₀` at a strictly feasible point `v` of the barrier path.
 
-    return lax.fori_loop(0, steps, step, v)
+    By Danskin `f ≤ ⟨∇f(Z), ·⟩` on the set, so the optimum is at most that of the *linear*
+    problem `max ⟨∇f(Z), ·⟩`, whose barrier problem `⟨∇f(Z), ·⟩/f₀ + μ b` has at `Z` the
+    same gradient `g` as `F` and the Hessian `μ∇²b` of the barrier alone. With the Newton
+    decrement `λ² = gᵀ(−μ∇²b)⁻¹g / μ` of that problem (a KKT residual in the barrier's
+    local norm), the interior-point bound for a `ν`-self-concordant barrier (Nesterov,
+    *Lectures on Convex Optimization*, Thm. 5.3.10) gives, for `λ < 1`,
+    `max f − f(Z) ≤ μ f₀ (ν + (λ + √ν) λ / (1 − λ))`, `ν = d + 2Σ|Bᵢ|` (moment sets) or
+    `d + p` (one term per KL ball). Returns that bound divided by `f₀` (`inf` if `λ ≥ 1`)
+    and `νμ`, the part the barrier itself leaves."""
+    dim = n + sum(dims)
+    nu = dim + (2.0 * sum(n + d for d in dims) if kind == "moment" else float(len(dims)))
+    grad = dF(v, *args, mu)
+    hess_barrier = jax.jacfwd(dF)(v, *args, mu) - jax.jacfwd(dF)(v, *args, jnp.zeros_like(mu))
+    lam = jnp.sqrt(jnp.maximum(-jnp.sum(grad * jnp.linalg.solve(hess_barrier, grad)) / mu, 0.0))
+    bound = mu * (nu + (lam + np.sqrt(nu)) * lam / (1.0 - lam))
+    return jnp.where(lam < 1, bound, jnp.inf), nu * mu
 
 
 def _mu_schedule(dtype):
@@ -427,49 +439,29 @@ def _make_zstar(kind, n, dims, rtol, max_iter):
         alpha = jnp.asarray(1e-2, dtype)
         z0 = (1.0 - alpha) * z_pg + alpha * _centre(kind, bparams, dim, dtype)  # = centre if interior
         v = z0[tri]
-        mu_final_ = jnp.asarray(mu_final, dtype)
-
-        def mu_of(k):
-            stage = jnp.minimum(k // _NEWTON_PER_STAGE, stages).astype(dtype)
-            return jnp.maximum(_MU0 * jnp.asarray(10.0, dtype) ** (-stage), mu_final_)
-
-        v = _newton(F, dF, v, (g, bparams), mu_of, stages * _NEWTON_PER_STAGE + _NEWTON_FINAL)
-        mu = mu_final_
-        # Newton decrement² = −∇Fᵀ(∇²F)⁻¹∇F bounds twice the barrier problem's suboptimality.
-        gr = dF(v, g, bparams, mu)
-        dec = -jnp.sum(gr * jnp.linalg.solve(jax.jacfwd(dF)(v, g, bparams, mu), gr))
-        polished = interior & jnp.all(jnp.isfinite(v)) & jnp.isfinite(F(v, g, bparams, mu))
-        polished = polished & (jnp.abs(dec) <= 1e-3 * mu)
+        mu = jnp.asarray(mu_final, dtype)
+        v = _barrier_path(F, dF, v, (g, bparams), mu, stages)
+        # Certificate: a strictly feasible point whose gap bound is at most twice the
+        # barrier's own `νμf₀` (relative to the nominal value `f₀ ≤ max f`).
+        z_bar = unvec(v)
+        feasible = jnp.all(jnp.isfinite(v)) & jnp.isfinite(F(v, g, bparams, mu))
+        gap, barrier = _barrier_gap(kind, dF, v, (g, bparams), mu, n, dims)
+        polished = interior & feasible & (gap <= 2.0 * barrier)
         z = jnp.where(polished, unvec(v), z_pg)
-        return z, v, bparams, mu, iters, res, polished
+        converged = jnp.where(interior, polished, res <= rtol)
+        return z, v, bparams, mu, iters, res, polished, converged
 
-    @jax.custom_jvp
     def zstar(g, params):
+        """Worst case `Z*` (the barrier solution when polished, else the projected-gradient
+        point) with the derivatives of the barrier solution: the implicit function
+        theorem on `∇F = 0` (`implicit_root`), the solve itself under `stop_gradient`."""
         with linalg.lapack_only():
-            z, _, _, _, iters, res, polished = forward(g, params)
-        return z, (iters, res, polished)
-
-    @zstar.defjvp
-    def zstar_jvp(primals, tangents):
-        g, params = primals
-        dg, dparams = tangents
-        g_, params_ = lax.stop_gradient(g), jax.tree.map(lax.stop_gradient, params)
-        with linalg.lapack_only():
-            z, v, bparams, mu, iters, res, polished = forward(g_, params_)
-        dbparams = dparams  # the widening is a shift: same tangents
-        grad_v = dF
-
-        def rhs_fn(gg, pp):
-            return grad_v(v, gg, pp, mu)
-
-        with linalg.lapack_only():
-            h = jax.jacfwd(dF)(v, g_, bparams, mu)
-            _, drhs = jax.jvp(rhs_fn, (g_, bparams), (dg, dbparams))
-        dv = -jnp.linalg.solve(h, drhs)
-        dz = unvec(dv)
-        f0 = jax.dtypes.float0
-        aux_t = (np.zeros(iters.shape, f0), jnp.zeros_like(res), np.zeros(polished.shape, f0))
-        return (z, (iters, res, polished)), (dz, aux_t)
+            z, v, bparams, mu, iters, res, polished, converged = forward(*jax.tree.map(lax.stop_gradient, (g, params)))
+            # The widening is a shift: the barrier's radii have the tangents of `params`.
+            bp = tuple(p + lax.stop_gradient(b - p) for p, b in zip(params, bparams, strict=True))
+            v = implicit_root(lambda u: dF(u, g, bp, mu), lambda _: (v, ()), v)[0]
+        z = jnp.where(polished, unvec(v), unvec(v) + lax.stop_gradient(z - unvec(v)))
+        return z, (iters, res, polished, converged)
 
     return zstar
 
@@ -536,10 +528,9 @@ def marginal_mmse(
 def _marginal_mmse(cov, params, n, dims, kind, rtol, max_iter):
     g = _whitening(cov, n, dims)
     zstar = _make_zstar(kind, n, dims, rtol, max_iter)
-    z, (iters, res, polished) = zstar(g, params)
+    z, (iters, res, polished, converged) = zstar(g, params)
     s = linalg.symmetrize(g @ z @ g.T)
     k = linalg.psd_solve(s[n:, n:], s[n:, :n]).T
     post = linalg.symmetrize(s[:n, :n] - k @ s[n:, :n])
     value = jnp.trace(s[:n, :n]) - jnp.sum(k * s[:n, n:])
-    converged = polished | (res <= rtol)
     return MarginalWorstCase(s, k, value, post, iters, converged, res, polished)

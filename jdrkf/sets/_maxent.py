@@ -20,7 +20,7 @@ Three problems, all used to build worst-case prior particle weights (Methods 1�
 
 "Exact" solves reduce each discrete problem to one scalar equation, solved by bracketed
 (safeguarded) Newton in a capped `lax.while_loop`; derivatives come from the implicit
-function theorem at the root (a `custom_jvp`), never from the iterations, so `p` is
+function theorem at the root (`lax.custom_root`), never from the iterations, so `p` is
 differentiable in `θ`, `q` and the supports. `method="pgd"` reproduces the authors'
 projected gradient descent on the dual (Algorithm 1 / the reference MATLAB code), whose
 early-stopped iterates are what the supplement's Tables V and VI print.
@@ -41,6 +41,7 @@ from jax import lax
 from jax.nn import log_softmax, logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
+from .._root import bracketed_newton, implicit_root
 from .._validation import as_float_array, is_concrete
 from ._base import in_range
 
@@ -66,7 +67,8 @@ class MaxEntResult(eqx.Module):
       iterate `λ₀` resp. `v₀` of the authors' dual variables.
     - `constraint`: `KL(p‖q)` resp. the transport cost `Σ c_ij P_ij` at the output.
     - `iterations`, `converged`: of the scalar Newton solve (or of the PGD loop);
-      `converged` is `False` for a traced `theta` that is not a finite number `≥ 0`.
+      `converged` is `False` for a traced `theta` that is not a finite number `≥ 0`, and
+      for an infeasible Wasserstein budget (`feasible` is `False`).
     - `feasible`: `False` only for a Wasserstein budget below the minimal cost
       `Σ_i q_i min_j c_ij` (then `p` is the `v₀ → ∞` limit, NaN-free).
     - `coupling`: the joint `P` (Wasserstein) or `None` (KL).
@@ -84,54 +86,17 @@ class MaxEntResult(eqx.Module):
 # ---------------------------------------------------------------------- scalar roots
 
 
-def _bracketed_newton(f, x0, lo, hi, max_iter):
-    """Newton on an increasing scalar `f` with `f(lo) ≤ 0 ≤ f(hi)`; steps leaving the
-    bracket (or non-finite ones) are replaced by bisection. Stops when `f = 0`, when a step
-    is below a few ulps, or after `max_iter` steps. Returns `(x, f(x), iterations)`."""
-    eps = jnp.finfo(x0.dtype).eps
-
-    def evaluate(x):
-        return jax.jvp(f, (x,), (jnp.ones_like(x),))
-
-    def cond(c):
-        x, fx, _, lo, hi, step, k = c
-        small = jnp.abs(step) <= 4 * eps * jnp.maximum(jnp.abs(x), 1.0)
-        return (k < max_iter) & (fx != 0) & ~small & (hi - lo > 4 * eps * jnp.maximum(jnp.abs(x), 1.0))
-
-    def body(c):
-        x, fx, dfx, lo, hi, _, k = c
-        below = fx < 0
-        lo, hi = jnp.where(below, x, lo), jnp.where(below, hi, x)
-        newton = x - fx / dfx
-        inside = jnp.isfinite(newton) & (newton > lo) & (newton < hi)
-        x_new = jnp.where(inside, newton, 0.5 * (lo + hi))
-        fx_new, dfx_new = evaluate(x_new)
-        return x_new, fx_new, dfx_new, lo, hi, x_new - x, k + 1
-
-    lo, hi = jnp.full_like(x0, lo), jnp.full_like(x0, hi)
-    x0 = jnp.clip(x0, lo, hi)
-    fx0, dfx0 = evaluate(x0)
-    init = (x0, fx0, dfx0, lo, hi, jnp.full_like(x0, jnp.inf), jnp.asarray(0))
-    x, fx, _, _, _, _, k = lax.while_loop(cond, body, init)
-    return x, fx, k
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _implicit(residual, x, active, params):
-    """Returns the root `x` of `residual(x, params) = 0`; its JVP is the implicit function
-    theorem `dx = −∂_p r dp / ∂_x r` where `active`, and `0` elsewhere (the root sits on a
-    bound there). `x` must come from a non-differentiated solve."""
-    return x
-
-
-@_implicit.defjvp
-def _implicit_jvp(residual, primals, tangents):
-    x, active, params = primals
-    dparams = tangents[2]
-    dr_dx = jax.jvp(lambda x_: residual(x_, params), (x,), (jnp.ones_like(x),))[1]
-    dr_dp = jax.jvp(lambda p_: residual(x, p_), (params,), (dparams,))[1]
-    ok = active & (dr_dx != 0) & jnp.isfinite(dr_dx)
-    return x, jnp.where(ok, -dr_dp / jnp.where(ok, dr_dx, 1.0), 0.0)
+    """`x`, a root of `residual(·, params)` where `active` (held at a bound elsewhere) from
+    a non-differentiated solve, with the derivatives of the implicit function theorem
+    (`dx = −(∂_x r)⁻¹ ∂_p r dp`) on the `active` coordinates and `0` on the others. `x` is
+    a scalar (then also `0` where `∂_x r` is zero or not finite) or a vector (`residual`
+    a gradient, `∂_x r` its Hessian, nonsingular on the active coordinates)."""
+    x = lax.stop_gradient(x)  # the solve is never differentiated
+    if x.ndim == 0:
+        dr_dx = jax.jvp(lambda y: residual(y, params), (x,), (jnp.ones_like(x),))[1]
+        active = active & (dr_dx != 0) & jnp.isfinite(dr_dx)
+    return implicit_root(lambda y: jnp.where(active, residual(y, params), y - x), lambda _: (x, ()), x)[0]
 
 
 # ------------------------------------------------------------------------- checks
@@ -206,7 +171,7 @@ def _kl_exact(q, theta, max_iter):
     mean = jnp.sum(jnp.where(pos, q * lq_ng, 0.0))
     var = jnp.sum(jnp.where(pos, q * (lq_ng - mean) ** 2, 0.0))
     s0 = jnp.sqrt(2.0 * theta_ng / jnp.maximum(var, jnp.finfo(q.dtype).tiny))
-    s, fs, k = _bracketed_newton(lambda s: _kl_residual(s, (lq_ng, pos, theta_ng)), s0, 0.0, 1.0, max_iter)
+    s, fs, k, _ = bracketed_newton(lambda s: _kl_residual(s, (lq_ng, pos, theta_ng)), s0, 0.0, 1.0, max_iter, x_scale=1.0)
     s = jnp.where(theta_ng <= 0, 0.0, jnp.where(active, s, 1.0))
     s = _implicit(_kl_residual, s, active, (lq, pos, theta))
     beta = 1.0 - s
@@ -332,11 +297,12 @@ def _transport_exact(q, c, theta, max_iter):
     var0 = jnp.sum(q * jnp.var(c_ng, axis=1))
     u0 = jnp.log(jnp.maximum((c_zero - theta_ng) / jnp.maximum(var0, tiny), tiny))
     params_ng = (c_ng, lq_ng, qpos, log_slack_ng)
-    u, fu, k = _bracketed_newton(lambda u: _transport_residual(u, params_ng), jnp.clip(u0, lo, hi), lo, hi, max_iter)
+    u, fu, k, _ = bracketed_newton(lambda u: _transport_residual(u, params_ng), u0, lo, hi, max_iter, x_scale=1.0)
     u = _implicit(_transport_residual, u, active & feasible & (slack > 0), (c, lq, qpos, log_slack))
     v0 = jnp.where(active, jnp.exp(u), 0.0)
     coupling = q[:, None] * jax.nn.softmax(-v0 * c, axis=1)
-    converged = ~active | ~feasible | (jnp.abs(fu) <= 1e3 * jnp.finfo(dtype).eps)
+    # An infeasible budget has no solution: never converged (`p` is the `v₀ → ∞` limit).
+    converged = feasible & (~active | (jnp.abs(fu) <= 1e3 * jnp.finfo(dtype).eps))
     return MaxEntResult(
         jnp.sum(coupling, axis=0), v0, jnp.sum(c * coupling), k, converged, feasible, coupling
     )
@@ -486,27 +452,6 @@ def _continuous_dual_z(z, params):
     return _continuous_dual(z, *params)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _implicit_stationary(dual, z, keep, params):
-    """Returns the minimizer `z` of `dual(z, params)` (from a non-differentiated solve);
-    its JVP is the implicit function theorem on `∇_z dual = 0` restricted to the free
-    coordinates (`keep`): `dz = −H⁻¹ ∂_p∇_z dual · dp` there, `0` on the coordinates held
-    at a bound. The vector counterpart of `_implicit` (the Hessian must be nonsingular)."""
-    return z
-
-
-@_implicit_stationary.defjvp
-def _implicit_stationary_jvp(dual, primals, tangents):
-    z, keep, params = primals
-    dparams = tangents[2]
-    grad_z = jax.grad(dual)
-    free = keep.astype(z.dtype)
-    h = jax.hessian(dual)(z, params)
-    h = h * free[:, None] * free[None, :] + jnp.diag(1.0 - free)
-    rhs = jax.jvp(lambda p_: grad_z(z, p_), (params,), (dparams,))[1]
-    return z, -jnp.linalg.solve(h, rhs * free)
-
-
 class MaxEntContinuous(eqx.Module):
     """Theorem 3 solution on a bounded domain, discretized on points `y_k` with weights
     `w_k` (Monte Carlo: `w_k = vol/K`).
@@ -585,7 +530,7 @@ class MaxEntContinuous(eqx.Module):
 
 def _continuous_exact(c, logw, q, theta, eps, max_iter, tol):
     """Projected Newton with backtracking on `_continuous_dual` (under `stop_gradient`),
-    then the implicit function theorem at the minimizer (`_implicit_stationary`)."""
+    then the implicit function theorem at the minimizer (`_implicit` on the gradient)."""
     dtype = q.dtype
     n = q.shape[0]
     params = (c, logw, q, theta, eps)
@@ -628,7 +573,7 @@ def _continuous_exact(c, logw, q, theta, eps, max_iter, tol):
     z, g_red, k = lax.while_loop(cond, body, (z0, g0, jnp.asarray(0)))
     # v₀ > 0: full IFT system; v₀ = 0 (budget slack): v₀ stays 0, IFT in μ only.
     keep = jnp.ones((n + 1,), bool).at[0].set(z[0] > 0)
-    z = _implicit_stationary(_continuous_dual_z, z, keep, params)
+    z = _implicit(jax.grad(_continuous_dual_z), z, keep, params)
     v0, mu = z[0], z[1:]
     g, r = _soft_min(v0, mu, c, eps)
     log_norm = logsumexp(logw - g)

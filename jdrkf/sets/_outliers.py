@@ -6,9 +6,9 @@ A model gives the influence function `ψ = −(ln p)'` of its least-favourable d
 information `i_min = E_p[ψ']`, which scales the covariance correction (eq. 41).
 
 The constants `K` (Lemma 1) and `a, b, c` (Lemma 2) are roots of scalar equations in
-`eps`. They are found by a fixed number of bracketed Newton steps inside a
-`jax.custom_jvp`: their derivatives come from the implicit function theorem at the
-root, never from the iterations, so both models are differentiable in `eps`
+`eps`. They are found by bracketed Newton steps (`jdrkf._root`), and their
+derivatives come from the implicit function theorem at the root, never from the
+iterations, so both models are differentiable in `eps`
 (under `jit`, `vmap` and `grad`) and `eps` can be tuned by gradient descent.
 """
 
@@ -26,6 +26,7 @@ from jax import lax
 from jax.scipy.special import erf, erfc, log_ndtr
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._root import bracketed_newton, implicit_root
 from .._validation import as_float_array, is_concrete
 from ._base import in_range
 
@@ -39,47 +40,18 @@ _EPS_NORMAL_MAX = 0.0303
 # --------------------------------------------------------------------------- roots
 
 
-def _bracketed_newton(f, x0, lo, hi, num_iter):
-    """`num_iter` Newton steps on an increasing scalar `f` with `f(lo) ≤ 0 ≤ f(hi)`;
-    a step leaving the current bracket is replaced by bisection.
-
-    Steps that leave the bracket by a few ulps only (XLA may evaluate `f(x)` twice,
-    rounding differently) are clipped into it rather than bisected, so a converged
-    iterate stays put."""
-    slack = 16 * jnp.finfo(x0.dtype).eps
-
-    def body(_, carry):
-        x, lo, hi = carry
-        fx, dfx = jax.jvp(f, (x,), (jnp.ones_like(x),))
-        below = fx < 0
-        lo, hi = jnp.where(below, x, lo), jnp.where(below, hi, x)
-        newton = x - fx / dfx
-        tol = slack * jnp.maximum(jnp.abs(x), 1.0)
-        inside = (newton >= lo - tol) & (newton <= hi + tol)
-        x = jnp.where(inside, jnp.clip(newton, lo, hi), 0.5 * (lo + hi))
-        return x, lo, hi
-
-    lo, hi = jnp.full_like(x0, lo), jnp.full_like(x0, hi)
-    return lax.fori_loop(0, num_iter, body, (jnp.clip(x0, lo, hi), lo, hi))[0]
-
-
-def _implicit_root(residual, guess, lo, hi, num_iter):
+def _implicit_root(residual, guess, lo, hi, max_iter):
     """`x(p)` with `residual(x(p), p) = 0` (`residual` increasing in `x`), found by
-    `_bracketed_newton` from `guess(p)`. Its JVP is the implicit function theorem,
-    `dx = −(∂r/∂p dp) / (∂r/∂x)` at the root, so no derivative ever flows through the
-    iterations (and higher derivatives work too)."""
+    bracketed Newton from `guess(p)` in `[lo, hi]` (at most `max_iter` steps). Its
+    derivatives come from the implicit function theorem at the root,
+    `dx = −(∂r/∂p dp) / (∂r/∂x)`, so none flows through the iterations (and higher
+    derivatives work too)."""
 
-    @jax.custom_jvp
     def root(p):
-        return _bracketed_newton(lambda x: residual(x, p), guess(p), lo, hi, num_iter)
+        def solve(x0):
+            return bracketed_newton(lambda x: residual(x, p), x0, lo, hi, max_iter, x_scale=1.0).x, ()
 
-    @root.defjvp
-    def root_jvp(primals, tangents):
-        (p,), (dp,) = primals, tangents
-        x = root(p)
-        dr_dx = jax.jvp(lambda x: residual(x, p), (x,), (jnp.ones_like(x),))[1]
-        dr_dp = jax.jvp(lambda p: residual(x, p), (p,), (dp,))[1]
-        return x, -dr_dp / dr_dx
+        return implicit_root(lambda x: residual(x, p), solve, lax.stop_gradient(guess(p)))[0]
 
     return root
 

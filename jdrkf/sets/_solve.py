@@ -11,10 +11,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
+from .._root import chord, default_rtol, implicit_root
 from .._validation import as_float_array, check_covariance
 from ._base import AbstractAmbiguitySet, radius
 from ._moment import Moment
@@ -212,43 +212,6 @@ def _blocks(obj: _Objective, sets, nominals, x):
     return tuple(blocks)
 
 
-def _dense_solve(g, y):
-    flat_y, unravel = ravel_pytree(y)
-    jac = jax.jacfwd(lambda v: ravel_pytree(g(unravel(v)))[0])(jnp.zeros_like(flat_y))
-    return unravel(jnp.linalg.solve(jac, flat_y))
-
-
-def _newton_chord(residual, x0, jacobian, max_steps):
-    """Chord (simplified Newton) iterations `x ← x − J(x₀)⁻¹ r(x)` with one dense Jacobian
-    (`jacobian(x₀)`, or `jax.jacfwd` of the flattened residual when `None`), LU-factorized
-    once. From a Frank–Wolfe start the contraction factor is about the start's error, so
-    a few steps reach round-off. A step is taken only if it decreases the residual norm,
-    and the loop stops once a step decreases it by less than half. Returns the last
-    accepted iterate, its residual and the number of steps taken."""
-    flat0, unravel = ravel_pytree(x0)
-
-    def res(v):
-        return ravel_pytree(residual(unravel(v)))[0]
-
-    jac = jax.jacfwd(res)(flat0) if jacobian is None else jacobian(x0)
-    lu = jax.scipy.linalg.lu_factor(jac)
-
-    def cond(c):
-        return c[3] & (c[2] < max_steps)
-
-    def body(c):
-        v, r, k, _ = c
-        v_new = v - jax.scipy.linalg.lu_solve(lu, r)
-        r_new = res(v_new)
-        norm, norm_new = jnp.linalg.norm(r), jnp.linalg.norm(r_new)
-        better = jnp.all(jnp.isfinite(r_new)) & (norm_new < norm)
-        keep = lambda a, b: jnp.where(better, a, b)  # noqa: E731
-        return keep(v_new, v), keep(r_new, r), k + better.astype(k.dtype), better & (norm_new < 0.5 * norm)
-
-    v, r, k, _ = lax.while_loop(cond, body, (flat0, res(flat0), jnp.zeros((), int), jnp.ones((), bool)))
-    return unravel(v), unravel(r), k
-
-
 def _wasserstein_jacobian(h, i_min, sets, nominals):
     """Closed-form Jacobian of `_reduced_residual` for the decoupled objective with two
     Wasserstein balls (`jax.jacfwd` pushes `n·m` tangents through `O(n²m)` products each;
@@ -311,7 +274,7 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
     The optimum is the fixed point `Σ = LMO(∇f(Σ))` of each block (first-order optimality of the concave maximization),
     written as the smooth system `_reduced_residual` in the gain `K` and the multipliers.
     Forward: Frank–Wolfe to a relative gap `max(rtol, _START_RTOL)`, then chord steps on
-    that system to round-off (`_newton_chord`; the Jacobian in closed form for two
+    that system to round-off (`chord`; the Jacobian in closed form for two
     Wasserstein balls, `make_jacobian`, else `jax.jacfwd`). Derivatives: the implicit function theorem on the same system
     (`lax.custom_root`); the blocks are smooth functions of its solution.
 
@@ -322,34 +285,26 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
     """
     dtype = nominals[0].dtype
 
-    def solve(_, guess):
+    def solve(guess):
         del guess
         p_, sets_, noms_ = jax.tree.map(lax.stop_gradient, (params, sets, nominals))
         obj = make_objective(*p_)
         s, iters, mults = _frank_wolfe(obj.fg, sets_, noms_, max(rtol, _START_RTOL), max_iter)
         jacobian = None if make_jacobian is None else make_jacobian(*p_, sets_, noms_)
-        x, (_, equations), steps = _newton_chord(_reduced_residual(obj, sets_, noms_), (obj.gain(s), mults), jacobian, _CHORD_MAX_STEPS)
-        worst = jnp.max(jnp.abs(jnp.stack(equations)))
-        # custom_root needs float auxiliary outputs (integer tangents are rejected).
-        return x, ((iters + steps).astype(dtype), worst)
+        x, (_, equations), steps = chord(_reduced_residual(obj, sets_, noms_), (obj.gain(s), mults), jacobian, _CHORD_MAX_STEPS)
+        return x, (iters + steps, jnp.max(jnp.abs(jnp.stack(equations))))
 
     obj = make_objective(*params)
     k0 = jax.eval_shape(obj.gain, nominals)
     guess = (jnp.zeros(k0.shape, dtype), tuple(jnp.zeros((), dtype) for _ in nominals))
-    x, (iters, worst) = lax.custom_root(_reduced_residual(obj, sets, nominals), guess, solve, _dense_solve, has_aux=True)
+    x, (iters, worst) = implicit_root(_reduced_residual(obj, sets, nominals), solve, guess)
     blocks = _blocks(obj, sets, nominals, x)
     value, _ = obj.fg(blocks)
     bound = sum(jnp.vdot(d, b) for d, b in zip(obj.directions(x[0]), blocks, strict=True))
     gap = lax.stop_gradient(jnp.maximum(bound - value, 0.0))
     tol = rtol * jnp.maximum(jnp.abs(value), jnp.finfo(dtype).tiny)
     converged = (worst <= rtol) & (gap <= tol)
-    return blocks, value, lax.stop_gradient(iters).astype(int), gap, converged
-
-
-def default_rtol(dtype) -> float:
-    """Default relative duality-gap tolerance of the solvers: `eps^(2/3)` (≈4e-11 in
-    float64, 2e-5 in float32); the chord steps usually reach machine precision."""
-    return float(jnp.finfo(dtype).eps) ** (2.0 / 3.0)
+    return blocks, value, iters, gap, converged
 
 
 def _as_set(name: str, s) -> AbstractAmbiguitySet:

@@ -7,6 +7,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
+from .._root import bracketed_newton
 from ._base import AbstractAmbiguitySet, in_range, radius
 
 _NEWTON_MAX_ITER = 100
@@ -56,16 +57,10 @@ class Wasserstein(AbstractAmbiguitySet):
             u = s * d * w
             return jnp.sum(mdiag * u * u) - 1.0, jnp.sum(2.0 * mdiag * u * d * w * w)
 
-        def cond(c):
-            s, s_prev, k = c
-            return (k < _NEWTON_MAX_ITER) & (jnp.abs(s - s_prev) > 4 * jnp.finfo(s.dtype).eps * s)
-
-        def body(c):
-            s, _, k = c
-            q, dq = q_and_slope(s)
-            return jnp.maximum(s - q / dq, s_lo), s, k + 1
-
-        s, _, _ = lax.while_loop(cond, body, (s_hi, 2 * s_hi, 0))
+        # Convex and increasing in s: Newton from s_hi (q ≥ 0) decreases monotonically to
+        # the root; q → ∞ at the pole 1/(θ d₁), the other end of the bracket.
+        pole = jnp.where(rho > 0, 1.0 / (jnp.where(rho > 0, rho, 1.0) * d1), jnp.inf)
+        s = bracketed_newton(q_and_slope, s_hi, s_lo, pole, _NEWTON_MAX_ITER, has_slope=True).x
         tdiag = 1.0 / (1.0 - rho * s * d)
         t = (v * tdiag) @ v.T
         cov = linalg.symmetrize(t @ nominal @ t)
