@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from . import linalg
 from ._gaussian import Gaussian
 from ._models import LinearModel
-from ._validation import as_float_array, check_covariance, check_shape, is_concrete
+from ._validation import as_float_array, check_covariance, check_shape, is_concrete, psd_rtol
 from .filters import KalmanFilter, smooth
 
 
@@ -45,8 +45,10 @@ class EMResult(eqx.Module):
     - `loglik_history`: `(max_iter + 1,)`; entry `k` is the log-likelihood after `k`
       EM iterations (entry 0: the initial parameters), NaN after `iterations`.
     - `iterations`: EM iterations performed.
-    - `converged`: `True` when the loop stopped on the gain criterion (not on the
-      cap, nor on a non-finite log-likelihood).
+    - `converged`: `True` only when the loop stopped on the gain criterion (not on the
+      cap, nor on a non-finite log-likelihood) after at least two iterations, the last
+      iteration did not lower the log-likelihood beyond round-off, and the returned
+      raw `Q`, `R` are finite and positive semidefinite and the offsets finite.
     """
 
     Q: Float[Array, "n n"]
@@ -111,13 +113,16 @@ def _m_step(f, h, ys, drive, mss, pss, cross, b, d, estimate_offsets, offset_upd
 def _lift(a, min_eig, lift):
     """Symmetrize; then `shift` adds `(min_eig − λ_min)·I` when `λ_min < min_eig`
     (the seed's `enforce_positive_definiteness`) or `clip` raises each eigenvalue
-    below `min_eig` to it."""
+    below `min_eig` to it. Also returns whether `a` itself is finite and positive
+    semidefinite, `λ_min ≥ −psd_rtol · max(|λ|_max, tiny)`."""
     a = linalg.symmetrize(a)
     lam, vec = jnp.linalg.eigh(a)
+    top = jnp.maximum(jnp.max(jnp.abs(lam)), jnp.finfo(a.dtype).tiny)
+    psd = jnp.all(jnp.isfinite(a)) & (lam[0] >= -psd_rtol(a.dtype, a.shape[0]) * top)
     if lift == "shift":
         shift = jnp.maximum(min_eig - lam[0], jnp.zeros((), a.dtype))
-        return a + shift * jnp.eye(a.shape[0], dtype=a.dtype)
-    return linalg.symmetrize((vec * jnp.maximum(lam, min_eig)) @ vec.T)
+        return a + shift * jnp.eye(a.shape[0], dtype=a.dtype), psd
+    return linalg.symmetrize((vec * jnp.maximum(lam, min_eig)) @ vec.T), psd
 
 
 def _check_scalar(name, x, dtype, *, nonnegative=False, allow_inf=False):
@@ -176,7 +181,12 @@ def em_noise_covariances(
     The loop (`lax.while_loop`, at most `max_iter` iterations) follows the seed's
     driver: after iteration `k ≥ 2` it stops when `loglik_k − loglik_{k−1} ≤ tol`
     (the gain of the first iteration is not tested); it also stops on a non-finite
-    log-likelihood. `Q` and `R` are then symmetrized and their small eigenvalues
+    log-likelihood. `converged` certifies that stop: besides the gain test it needs
+    `loglik_k − loglik_{k−1} ≥ −(max(tol, 0) + T·eps·(|loglik_k| + |loglik_{k−1}|))`
+    (EM never lowers the likelihood, so a larger drop is a numerical failure, not
+    convergence; `T·eps·|·|` bounds the round-off of summing `T` terms), finite
+    offsets and finite positive semidefinite raw `Q`, `R`; reaching `max_iter`
+    without passing the gain test is not convergence. `Q` and `R` are then symmetrized and their small eigenvalues
     lifted to `min_eig` (`lift="shift"`: add `(min_eig − λ_min) I` when
     `λ_min < min_eig`, as the seed does; `"clip"`: raise each eigenvalue to at least
     `min_eig`).
@@ -288,10 +298,17 @@ def em_noise_covariances(
     nan = jnp.asarray(jnp.nan, dtype)
     init = (jnp.asarray(0, jnp.int32), params0, nxt0, ll0, nan, hist0)
     k, (q, r, b, d), _, ll, ll_prev, hist = lax.while_loop(cond, body, init)
-    converged = jnp.isfinite(ll) & stopped(k, ll, ll_prev)
+    q_lifted, q_psd = _lift(q, min_eig, lift)
+    r_lifted, r_psd = _lift(r, min_eig, lift)
+    eps = jnp.finfo(dtype).eps
+    slack = jnp.maximum(tol, 0) + T * eps * (jnp.abs(ll) + jnp.abs(ll_prev))
+    converged = (
+        jnp.isfinite(ll) & stopped(k, ll, ll_prev) & (ll - ll_prev >= -slack)
+        & q_psd & r_psd & jnp.all(jnp.isfinite(b)) & jnp.all(jnp.isfinite(d))
+    )
     return EMResult(
-        Q=_lift(q, min_eig, lift),
-        R=_lift(r, min_eig, lift),
+        Q=q_lifted,
+        R=r_lifted,
         process_offset=b,
         noise_offset=d,
         loglik=ll,

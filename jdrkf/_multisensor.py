@@ -15,7 +15,7 @@ from . import linalg
 from ._gaussian import Gaussian
 from ._models import LinearModel
 from ._noise import AbstractNoise
-from ._simulate import Trajectories, _check_law
+from ._simulate import AbstractSelfSimulatingModel, Trajectories, _check_law
 from ._validation import as_float_array, check_covariance, check_shape, is_concrete
 
 
@@ -34,7 +34,7 @@ def _block_diag(blocks) -> Array:
     return out
 
 
-class MultiSensorModel(eqx.Module):
+class MultiSensorModel(AbstractSelfSimulatingModel):
     r"""Linear model observed by `p` sensors (Chen et al. 2025, eqs. 27–28 and 34).
 
     For `k = 1..T`: `x_k = F x_{k-1} + G w_k`, `w_k ~ N(0, Q)`, and for sensor `i`:
@@ -189,6 +189,9 @@ class MultiSensorModel(eqx.Module):
     def check_inputs(self, inputs, num_steps: int) -> None:
         if inputs is not None:
             raise ValueError("inputs were given but MultiSensorModel has no control matrix")
+
+    def _simulate_runs(self, key, prior, num_steps, num_runs):
+        return _simulate_multisensor(key, self, prior, num_steps, num_runs)
 
     # -- views ---------------------------------------------------------------------
     def _slice(self, i: int) -> slice:

@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 from . import linalg
 from ._gaussian import Gaussian
 from ._noise import AbstractNoise
-from ._simulate import Trajectories, _check_law
+from ._simulate import AbstractSelfSimulatingModel, Trajectories, _check_law
 from ._validation import as_float_array, check_covariance
 
 
@@ -50,7 +50,7 @@ def _gaussian_logpdf(resid: Float[Array, " m"], cov: Float[Array, "m m"]) -> Flo
     return -0.5 * (quad + logdet + jnp.sum(obs_f) * math.log(2 * math.pi))
 
 
-class NonlinearModel(eqx.Module):
+class NonlinearModel(AbstractSelfSimulatingModel):
     r"""Nonlinear state-space model (Wang 2022, eqs. (1)–(2)); `prior` is the law of `x_0`.
 
     For `k = 1..T` (array index `t = k − 1`), with `additive=True` (default):
@@ -206,6 +206,9 @@ class NonlinearModel(eqx.Module):
         """Nonlinear models take no control inputs: `inputs` must be `None`."""
         if inputs is not None:
             raise ValueError("inputs were given but jdrkf.NonlinearModel takes no controls (put them inside f as a function of t)")
+
+    def _simulate_runs(self, key, prior, num_steps, num_runs):
+        return _simulate_nonlinear(key, self, prior, num_steps, num_runs)
 
 
 def _has_density(law) -> bool:

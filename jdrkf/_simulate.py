@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import abc
 from typing import Callable
 
 import equinox as eqx
@@ -42,6 +43,16 @@ class Trajectories(eqx.Module):
     @property
     def num_steps(self) -> int:
         return self.states.shape[1]
+
+
+class AbstractSelfSimulatingModel(eqx.Module):
+    """A model whose noise laws are fields of the model and that takes no inputs
+    (`NonlinearModel`, `MultiSensorModel`): `simulate` hands it the checked key, prior and
+    counts, so this module never imports the model types that build on `Trajectories`."""
+
+    @abc.abstractmethod
+    def _simulate_runs(self, key: PRNGKeyArray, prior: Gaussian | AbstractNoise, num_steps: int, num_runs: int) -> Trajectories:
+        """`num_runs` independent runs of `num_steps` steps from `x_0 ~ prior`."""
 
 
 def _check_law(name: str, law, dim: int, dtype) -> AbstractNoise | None:
@@ -103,17 +114,11 @@ def simulate(
     if key is None:
         raise ValueError("simulate needs a PRNG key, e.g. jax.random.key(0)")
     num_steps, num_runs = check_count("num_steps", num_steps), check_count("num_runs", num_runs)
-    from ._nonlinear import NonlinearModel, _simulate_nonlinear  # noqa: PLC0415 (these modules import Trajectories from here)
-
-    from ._multisensor import MultiSensorModel, _simulate_multisensor  # noqa: PLC0415
-
-    if isinstance(model, (NonlinearModel, MultiSensorModel)):
+    if isinstance(model, AbstractSelfSimulatingModel):
         extra = [n for n, v in (("process_noise", process_noise), ("measurement_noise", measurement_noise), ("inputs", inputs), ("transition_perturbation", transition_perturbation)) if v is not None]
         if extra:
             raise ValueError(f"{', '.join(extra)} cannot be given for a jdrkf.{type(model).__name__}: its noise laws are fields of the model, and it takes no inputs")
-        if isinstance(model, MultiSensorModel):
-            return _simulate_multisensor(key, model, prior, num_steps, num_runs)
-        return _simulate_nonlinear(key, model, prior, num_steps, num_runs)
+        return model._simulate_runs(key, prior, num_steps, num_runs)
     if not isinstance(model, LinearModel):
         raise ValueError(f"model must be a jdrkf.LinearModel, NonlinearModel or MultiSensorModel, got {type(model).__name__}")
     # The model may have been edited (e.g. eqx.tree_at) after its checked construction.

@@ -343,3 +343,73 @@ def test_input_validation():
         pos = [args.pop(k) for k in ("F", "H", "ys", "initial_mean", "initial_cov")]
         with pytest.raises(ValueError, match=match):
             em_noise_covariances(*pos, **args)
+
+
+# ----------------------------------------------------------------------------------
+# Certified convergence
+# ----------------------------------------------------------------------------------
+
+
+def _stationarity_data():
+    rng = np.random.default_rng(11)
+    F, H, Q, R = _random_model(rng, 2, 2)
+    m0, P0 = np.zeros(2), np.eye(2)
+    return F, H, _simulate(rng, F, H, Q, R, m0, P0, 60), m0, P0
+
+
+def test_one_iteration_is_never_converged():
+    # The gain test starts at the second iteration: with a tolerance every gain passes,
+    # one iteration is still not converged, two are.
+    F, H, ys, m0, P0 = _stationarity_data()
+    one = em(F, H, ys[:20], m0, P0, max_iter=1, tol=1e6)
+    two = em(F, H, ys[:20], m0, P0, max_iter=2, tol=1e6)
+    assert int(one.iterations) == 1 and not bool(one.converged)
+    assert int(two.iterations) == 2 and bool(two.converged)
+
+
+def test_converged_result_is_a_stationary_point():
+    # min_eig = 0 with "clip" returns the raw estimates (they are PSD). One more EM step of
+    # the NumPy reference (joint-Gaussian E-step) barely moves them, and the central
+    # finite-difference gradient of the reference log-likelihood in Q and R vanishes
+    # relative to its value at the start Q = R = I.
+    F, H, ys, m0, P0 = _stationarity_data()
+    T = ys.shape[0]
+    drive, zeros = np.zeros((T - 1, 2)), np.zeros(2)
+    res = em(F, H, ys, m0, P0, max_iter=1000, tol=1e-10, estimate_offsets=False, min_eig=0.0, lift="clip")
+    assert bool(res.converged) and int(res.iterations) < 1000
+    Q, R = np.asarray(res.Q), np.asarray(res.R)
+    _, *smoothed = ref_posterior(F, H, ys, drive, m0, P0, Q, R, zeros, zeros)
+    Q1, R1, _, _ = ref_em_step(F, H, ys, drive, (Q, R, zeros, zeros), smoothed, estimate_offsets=False)
+    assert np.linalg.norm(Q1 - Q) / np.linalg.norm(Q) < 1e-5
+    assert np.linalg.norm(R1 - R) / np.linalg.norm(R) < 1e-5
+
+    def gradient(Q, R, h=1e-5):
+        g = []
+        for which in (0, 1):
+            for i, j in ((0, 0), (0, 1), (1, 1)):
+                e = np.zeros((2, 2))
+                e[i, j] = e[j, i] = h
+                ll = [ref_loglik(F, H, ys, drive, m0, P0, Q + s * e * (which == 0), R + s * e * (which == 1), zeros, zeros) for s in (1, -1)]
+                g.append((ll[0] - ll[1]) / (2 * h))
+        return np.array(g)
+
+    assert np.linalg.norm(gradient(Q, R)) < 1e-4 * np.linalg.norm(gradient(np.eye(2), np.eye(2)))
+
+
+def test_likelihood_drop_is_not_convergence(monkeypatch):
+    # A broken M-step (covariances scaled by 10) lowers the likelihood: the gain test
+    # "gain <= tol" passes at the second iteration, but a drop is a failure, not convergence.
+    import jdrkf._em as em_module
+
+    m_step = em_module._m_step
+
+    def broken(*args):
+        q, r, b, d = m_step(*args)
+        return 10 * q, 10 * r, b, d
+
+    monkeypatch.setattr(em_module, "_m_step", broken)
+    F, H, ys, m0, P0 = _stationarity_data()
+    res = em_noise_covariances(F, H, ys[:50], m0, P0, max_iter=5)
+    hist = np.asarray(res.loglik_history)
+    assert int(res.iterations) == 2 and hist[2] < hist[1] - 1.0
+    assert not bool(res.converged)
