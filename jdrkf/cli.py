@@ -139,31 +139,42 @@ def main(argv: list[str] | None = None) -> int:
     from . import experiments
 
     if args.command == "list":
-        print(f"{'name':24s} {'runs':>5s} {'quick':>5s}  description")
+        print(f"{'name':24s} {'runs':>5s} {'time':>11s} {'quick':>5s} {'time':>6s}  description")
         for name, exp in sorted(experiments.EXPERIMENTS.items()):
-            print(f"{name:24s} {exp.default_runs:5d} {exp.quick.get('runs', exp.default_runs):5d}  {exp.description}")
+            print(f"{name:24s} {exp.default_runs:5d} {exp.time_estimate():>11s} {exp.quick.get('runs', exp.default_runs):5d} "
+                  f"{exp.time_estimate(quick=True):>6s}  {exp.description}")
+        print(f"\nruns: default Monte Carlo runs; quick: the runs of --quick (which also shrinks horizons and grids); "
+              f"time: CPU time of the whole command on a {experiments.MEASURED_ON}, roughly an upper bound of its wall "
+              "time on an otherwise idle machine (est.: scaled up from a tenth of the runs; —: not measured).")
         return 0
 
     try:
         exp = experiments.get(args.name)
     except ValueError as e:
         return _fail(str(e))
-    progress = _progress_wanted(args.progress)
-    t0 = time.perf_counter()
-    report = exp.reproduce(args.runs, args.seed, quick=args.quick, progress=progress, curves=args.plots is not None,
-                           settings={"precision": args.precision})
-    report.settings["wall time"] = f"{time.perf_counter() - t0:.1f} s"
-    print(report.table())
-    if args.json is not None:
-        args.json.write_text(json.dumps(report.to_json(), indent=2))
-        print(f"\nreport: {args.json}")
-    if args.plots is not None:
-        from .plotting import plot_error_curves, plot_sweeps
+    from ._progress import Quiet, TqdmReporter, reporting
 
-        if report.curves:
-            print(f"figure: {plot_error_curves(report, args.plots / f'{report.experiment}.png')}")
-        if report.sweeps:
-            print(f"figure: {plot_sweeps(report, args.plots / f'{report.experiment}-sweeps.png')}")
+    with reporting(TqdmReporter() if _progress_wanted(args.progress) else Quiet()) as reporter:
+        t0 = time.perf_counter()
+        report = exp.reproduce(args.runs, args.seed, quick=args.quick, curves=args.plots is not None,
+                               settings={"precision": args.precision})
+        report.settings["wall time"] = f"{time.perf_counter() - t0:.1f} s"
+        print(report.table(), flush=True)
+        if args.json is not None:
+            args.json.write_text(json.dumps(report.to_json(), indent=2))
+            print(f"\nreport: {args.json}")
+        if args.plots is not None:
+            from .plotting import plot_error_curves, plot_sweeps
+
+            figures = [(plot_error_curves, f"{report.experiment}.png")] * bool(report.curves)
+            figures += [(plot_sweeps, f"{report.experiment}-sweeps.png")] * bool(report.sweeps)
+            paths = []
+            with reporter.phase("plotting", total=len(figures), unit="figure") as bar:
+                for plot, filename in figures:
+                    paths.append(plot(report, args.plots / filename))
+                    bar.update()
+            for path in paths:
+                print(f"figure: {path}")
     return 0
 
 

@@ -1,5 +1,6 @@
 """The `jdrkf` command line and the experiment registry."""
 
+import contextlib
 import json
 import pathlib
 import re
@@ -13,7 +14,7 @@ import pytest
 
 import jdrkf
 import jdrkf.experiments
-from jdrkf import cli
+from jdrkf import _progress, cli
 
 
 def test_list(capsys):
@@ -218,7 +219,7 @@ def test_quick_mode_and_list(capsys, monkeypatch):
     assert seen["runs"] == 7 and seen["num_steps"] == 10
     assert cli.main(["list"]) == 0
     line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fake "))
-    assert line.split()[1:3] == ["100", "3"]
+    assert line.split()[1:5] == ["100", "—", "3", "—"]  # runs, time (not measured), quick runs, quick time
     for e in jdrkf.experiments.EXPERIMENTS.values():  # every experiment has a quick mode smaller than its default
         assert 2 <= e.quick["runs"] <= e.default_runs
 
@@ -226,3 +227,116 @@ def test_quick_mode_and_list(capsys, monkeypatch):
 def test_console_script_entry_point():
     proc = subprocess.run([sys.executable, "-m", "jdrkf.cli", "list"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and "wang-ye-table2" in proc.stdout
+
+
+class _Recorder:
+    """A progress reporter that records phases and their updates."""
+
+    def __init__(self):
+        self.phases = []
+
+    @contextlib.contextmanager
+    def phase(self, name, total=None, unit="it"):
+        rec = {"name": name, "total": total, "unit": unit, "updates": []}
+        self.phases.append(rec)
+
+        class P:
+            def update(self, n=1):
+                rec["updates"].append(n)
+
+        yield P()
+
+
+def _fake_experiment(monkeypatch, name="fake"):
+    """A registered experiment that reports a 'tuning' phase of 3 steps, like the real ones."""
+    def fake_run(runs, seed, progress=False, curves=False):
+        with _progress.phase("tuning", total=3, unit="step") as p:
+            for _ in range(3):
+                p.update()
+        rep = jdrkf.experiments.Report(name, seed, [jdrkf.experiments.Row.from_values("KF", "rmse", 2.0, np.arange(1.0, runs + 1))])
+        if curves:
+            rep.curves = {"KF": np.ones((runs, 20)), "HKF": np.full(20, 2.0)}
+        return rep
+
+    exp = jdrkf.experiments.Experiment(name, "a fake experiment", 5, fake_run)
+    monkeypatch.setitem(jdrkf.experiments.EXPERIMENTS, name, exp)
+    return exp
+
+
+def test_progress_reports_every_phase_on_stderr(tmp_path, capsys, monkeypatch):
+    _fake_experiment(monkeypatch)
+    assert cli.main(["reproduce", "fake", "--progress", "--plots", str(tmp_path)]) == 0
+    captured = capsys.readouterr()
+    err = captured.err.replace("\r", "\n")
+    assert "fake (5 runs), total" in err  # the whole run, with its elapsed time
+    assert "tuning: 100%" in err and "3/3" in err and ("step/s" in err or "s/step" in err)  # rate
+    assert "plotting: 100%" in err and "1/1" in err
+    assert "tuning" not in captured.out and "| KF | rmse |" in captured.out  # bars on stderr, report on stdout
+    # quiet: --no-progress, and by default when stderr is not a terminal (pytest captures it)
+    for flags in (["--no-progress"], []):
+        assert cli.main(["reproduce", "fake", *flags]) == 0
+        assert capsys.readouterr().err == ""
+
+
+def test_library_is_quiet_unless_a_reporter_is_installed(capsys, monkeypatch):
+    exp = _fake_experiment(monkeypatch)
+    exp.reproduce()
+    assert capsys.readouterr().err == ""
+    rec = _Recorder()
+    with _progress.reporting(rec):
+        exp.reproduce(runs=2)
+    assert [p["name"] for p in rec.phases] == ["fake (2 runs), total", "tuning"]
+    assert rec.phases[1]["updates"] == [1, 1, 1] and rec.phases[1]["total"] == 3
+    assert _progress.current().__class__ is _progress.Quiet  # restored after the block
+
+
+def test_tqdm_reporter_shows_rate_and_eta():
+    import io
+
+    buf = io.StringIO()
+    with _progress.TqdmReporter(file=buf).phase("Monte Carlo", total=4, unit="run") as bar:
+        bar.update(2)
+        bar.update(2)
+    last = buf.getvalue().replace("\r", "\n").strip().splitlines()[-1]
+    assert re.match(r"Monte Carlo: 100%.*4/4 \[\d\d:\d\d<\d\d:\d\d, .*(run/s|s/run)\]", last), last
+
+
+def test_montecarlo_reports_compiling_then_runs_in_chunks():
+    model = jdrkf.LinearModel(F=np.eye(1), H=np.eye(1), Q=np.eye(1), R=np.eye(1))
+    prior = jdrkf.Gaussian(np.zeros(1), np.eye(1))
+    traj = jdrkf.simulate(jax.random.key(0), model, prior, 3, 250)
+    rec = _Recorder()
+    with _progress.reporting(rec):
+        out = jdrkf.montecarlo({"KF": jdrkf.KalmanFilter()}, model, prior, traj)
+    names = [p["name"] for p in rec.phases]
+    assert names[0].startswith("compiling Monte Carlo (1 filter, 100 runs per call)") and names[1] == "Monte Carlo"
+    mc = rec.phases[1]
+    # 250 runs: at least 100 runs per call, at most 10 calls -> 100 + 100 + 50 runs
+    assert mc["total"] == 250 and mc["unit"] == "run" and mc["updates"] == [100, 100, 50]
+    # chunking does not change the results: one call over all runs gives the same per-run RMSE
+    whole = jdrkf.montecarlo({"KF": jdrkf.KalmanFilter()}, model, prior, jax.tree.map(lambda a: a[:100], traj))
+    np.testing.assert_array_equal(out["KF"]["rmse"][:100], whole["KF"]["rmse"])
+
+
+def test_list_shows_measured_times(capsys, monkeypatch):
+    _fake_experiment(monkeypatch)
+    monkeypatch.setitem(jdrkf.experiments.TIMINGS, "fake", jdrkf.experiments.Timing(default_s=7200.0, quick_s=42.0, estimated=True))
+    assert cli.main(["list"]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.startswith("fake "))
+    assert line.split()[1:6] == ["5", "est.", "2.0", "h", "4"] and "42 s" in line
+    assert f"CPU time of the whole command on a {jdrkf.experiments.MEASURED_ON}" in out
+    assert set(jdrkf.experiments.TIMINGS) - {"fake"} <= set(jdrkf.experiments.EXPERIMENTS)  # no stale entries
+
+
+def test_quick_options_are_options_of_the_run_and_shrink_the_horizon():
+    import inspect
+
+    for e in jdrkf.experiments.EXPERIMENTS.values():
+        params = inspect.signature(e.run).parameters
+        for option in set(e.quick) - {"runs"}:
+            assert option in params, (e.name, option)
+        if "num_steps" in params:  # an experiment with a horizon shrinks it in quick mode
+            default = params["num_steps"].default
+            assert "num_steps" in e.quick, e.name
+            assert default is None or e.quick["num_steps"] < default, e.name

@@ -11,10 +11,13 @@ from . import (
 )
 from ._registry import (
     EXPERIMENTS as EXPERIMENTS,
+    MEASURED_ON as MEASURED_ON,
+    TIMINGS as TIMINGS,
     Experiment as Experiment,
     Report as Report,
     Row as Row,
     Sweep as Sweep,
+    Timing as Timing,
     get as get,
     register as register,
 )

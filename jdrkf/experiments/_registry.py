@@ -7,7 +7,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .. import metrics
+from .. import _progress, metrics
 
 # Paper numbers within this relative distance of each other are a tie: the papers'
 # tables are mostly single random episodes, printed to 3–4 digits.
@@ -250,12 +250,53 @@ class Report:
 
 
 @dataclasses.dataclass(frozen=True)
+class Timing:
+    """Measured time in seconds of a whole `jdrkf reproduce NAME --no-progress` process
+    (import, compiling, tuning, Monte Carlo) at the default run count and with `--quick`.
+
+    It is the process's CPU time (user + system): the machine was shared with other
+    jobs, under which wall-clock times were 3–6 times longer and not reproducible; on an
+    idle machine of the same kind the wall time is about this or less (XLA keeps at least
+    one core busy). `estimated`: the default time is scaled linearly in the run count
+    from a run with a tenth of the runs (fixed costs scaled too: an upper estimate)."""
+
+    default_s: float | None  # None: not measured
+    quick_s: float
+    estimated: bool = False
+
+
+# Machine the TIMINGS were measured on, one experiment at a time (float64, jax 0.10).
+MEASURED_ON = "2-core Xeon"
+TIMINGS: dict[str, Timing] = {
+    "chen-fusion": Timing(None, 134.6),
+    "jang-convergence": Timing(22.2, 24.2),
+    "jang-lqr": Timing(None, 64.5),
+    "li-convergence": Timing(15.3, 12.4),
+    "li-identity": Timing(19.8, 16.2),
+    "li-torsion": Timing(None, 46.6),
+    "wang-growth": Timing(None, 53.5),
+    "wang-methods": Timing(None, 46.0),
+    "wang-tracking": Timing(45.6, 35.7),
+    "wang-ye-breakdown": Timing(29.6, 16.4),
+    "wang-ye-sensitivity": Timing(18.1, 11.1),
+    "wang-ye-table1": Timing(19.6, 20.8),
+    "wang-ye-table2": Timing(19.6, 19.7),
+    "wang-ye-table3": Timing(19.7, 20.1),
+}
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 100 else f"{seconds / 60:.0f} min" if seconds < 6000 else f"{seconds / 3600:.1f} h"
+
+
+@dataclasses.dataclass(frozen=True)
 class Experiment:
     """A registered reproduction: `run(runs, seed, progress, curves, **quick_options) -> Report`.
 
     `scenario`, `metric` (with units) and `legend` (filter label → name, beyond the shared
     `GLOSSARY`) head the report. `quick` holds the `--quick` setting: `"runs"` and any
-    keyword options of `run` that shrink the problem."""
+    keyword options of `run` that shrink the problem. `timing` is the measured time
+    (`TIMINGS`, machine `MEASURED_ON`), `None` if not measured."""
 
     name: str
     description: str
@@ -266,14 +307,30 @@ class Experiment:
     legend: Mapping[str, str] = dataclasses.field(default_factory=dict)
     quick: Mapping[str, Any] = dataclasses.field(default_factory=lambda: {"runs": 4})
 
+    @property
+    def timing(self) -> Timing | None:
+        return TIMINGS.get(self.name)
+
+    def time_estimate(self, quick: bool = False) -> str:
+        """The measured time as text: "45 s", "est. 2.1 h", or "—" if not measured."""
+        t = self.timing
+        seconds = None if t is None else t.quick_s if quick else t.default_s
+        if seconds is None:
+            return "—"
+        return ("est. " if t.estimated and not quick else "") + _duration(seconds)
+
     def reproduce(self, runs: int | None = None, seed: int = 0, *, quick: bool = False, progress: bool = False,
                   curves: bool = False, settings: Mapping[str, Any] | None = None) -> Report:
         """Run the experiment (`runs=None`: the default, or the quick run count) and fill
-        the report's header; `settings` adds entries to its run settings."""
+        the report's header; `settings` adds entries to its run settings. `progress`:
+        report the phases as bars on stderr (needs `tqdm`), unless a reporter is
+        installed (`jdrkf._progress.reporting`), which then gets them."""
         options = dict(self.quick) if quick else {}
         quick_runs = options.pop("runs", self.default_runs)
         runs = (quick_runs if quick else self.default_runs) if runs is None else runs
-        report = self.run(runs=runs, seed=seed, progress=progress, curves=curves, **options)
+        with _progress.reporting(_progress.reporter(progress)) as reporter, \
+                reporter.phase(f"{self.name} ({runs} runs{', quick' if quick else ''}), total"):
+            report = self.run(runs=runs, seed=seed, progress=progress, curves=curves, **options)
         report.title = report.title or self.description
         report.scenario = report.scenario or self.scenario
         report.metric = report.metric or self.metric

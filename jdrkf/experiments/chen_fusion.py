@@ -231,5 +231,6 @@ register(
         description="Chen et al. 2025 Table I / Fig. 1: marginal DR fusion of three correlated sensors (paper and authors-code variants)",
         default_runs=1000,
         run=run,
+        quick={"runs": 10, "train_runs": 10, "fit_steps": 0, "variants": ("paper",)},
     )
 )

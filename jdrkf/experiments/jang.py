@@ -349,10 +349,12 @@ register(Experiment(
     description="Jang et al. (steady-state Wasserstein DRKF), Fig. 1: θ_max and convergence of the DR Riccati recursion to the steady state (2-D benchmark, random systems).",
     default_runs=100,
     run=run_convergence,
+    quick={"runs": 10},
 ))
 register(Experiment(
     name="jang-lqr",
     description="Jang et al., Table 1: closed-loop LQR tracking with KF, SS-KF, risk-sensitive, BCOT and steady-state DRKF; EM nominals; Gaussian and U-Quadratic noise.",
     default_runs=200,
     run=run_lqr,
+    quick={"runs": 4, "train_runs": 4, "settings": ("gaussian",)},
 ))

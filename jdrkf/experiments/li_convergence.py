@@ -307,4 +307,5 @@ register(Experiment(
     description="Li et al. (Variational Robust KFs), Example 2 / Figs. 6–7: STKF-AR1 variance tracking vs forgetting ρ (time constant, steady-state std, RMSE), T=6000.",
     default_runs=100,
     run=run,
+    quick={"runs": 4, "num_steps": 900},
 ))

@@ -534,10 +534,12 @@ register(Experiment(
     description="Li et al. (Variational Robust KFs), Example 4 / Table IV: 1-DOF torsion, 3 complex noise cases; per-state RMSE, T=2000.",
     default_runs=200,
     run=run_torsion,
+    quick={"runs": 4, "num_steps": 1300},
 ))
 register(Experiment(
     name="li-identity",
     description="Li et al. (Variational Robust KFs), Example 1 / Table III: constant-acceleration model, outliers / slow-varying R; RMSE, T=5000.",
     default_runs=200,
     run=run_identity,
+    quick={"runs": 4, "num_steps": 1000},
 ))

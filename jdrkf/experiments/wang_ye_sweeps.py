@@ -359,10 +359,12 @@ register(Experiment(
     description="Wang & Ye 2022, Fig. 1: RMSE vs ε_real (α=0, ±25) for both HKFs; vs θ₂ for the MKF (α=1); T=10⁴.",
     default_runs=DEFAULT_RUNS,
     run=run_sensitivity,
+    quick={"runs": 4, "num_steps": 1000},
 ))
 register(Experiment(
     name="wang-ye-breakdown",
     description="Wang & Ye 2022, Fig. 2: RMSE of the six filters vs ε_real (±50 outliers), α ∈ {0, 1}; T=10⁴.",
     default_runs=DEFAULT_RUNS,
     run=run_breakdown,
+    quick={"runs": 4, "num_steps": 1000},
 ))
