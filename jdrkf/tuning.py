@@ -11,8 +11,11 @@ objective = jdrkf.tuning.rmse_objective(model, prior, train)
 mkf = jdrkf.DRKF(state_set=Moment(1.05), noise_set=Moment(1.05), outliers=EpsContamination(0.05, k=1.4))
 fit = jdrkf.tuning.fit(mkf, objective, where=lambda f: (f.state_set.theta2, f.noise_set.theta2),
                        bounds=(1.0, None), shared=True, steps=50)
-fit.filter  # the tuned filter
+fit.filter  # the tuned filter (the best iterate: fit.best_step; history: fit.params, fit.losses)
 ```
+
+`fit` also takes a convergence test (`tol`, `patience`), jittered `restarts` (every start's
+history in `fit.runs`), `scan=True` (the loop as one compiled `lax.scan`) and `progress`.
 
 Evaluate the tuned filter on runs simulated with a different key (separate training
 and test data).
@@ -27,17 +30,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, ArrayLike, Float, PyTree
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, PyTree
 
-from . import metrics
+from . import _progress, metrics
 from ._gaussian import Gaussian
 from ._models import LinearModel
 from ._simulate import Trajectories
 from ._validation import check_count
 from .filters._base import AbstractFilter
 
-
-__all__ = ["rmse_objective", "fit", "grid_search", "FitResult", "GridResult"]
+__all__ = ["FitResult", "FitRun", "GridResult", "fit", "grid_search", "rmse_objective"]
 
 
 def rmse_objective(
@@ -66,9 +68,24 @@ class _Bounds(eqx.Module):
     upper: float | None
 
     def to(self, u):
-        if self.upper is None:
-            return self.lower + jax.nn.softplus(u)
-        return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
+        """`lower + softplus(u)` or `lower + (upper − lower) sigmoid(u)`, clipped to the
+        representable values of `u`'s dtype strictly inside the bounds (in float32,
+        `sigmoid(u)` rounds to 1 from `u ≈ 17` and `softplus(u)` vanishes next to `lower`)."""
+        x = self.lower + jax.nn.softplus(u) if self.upper is None else self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
+        lo, hi = self.inside(u.dtype)
+        return jnp.clip(x, lo, hi)
+
+    def inside(self, dtype) -> tuple[float, float | None]:
+        """The values of `dtype` nearest to the bounds strictly inside `(lower, upper)`,
+        skipping subnormals (XLA on CPU flushes them to zero, e.g. `0 < 1e-45` in float32)."""
+        info = np.finfo(dtype)
+
+        def inner(bound, direction):
+            x = np.asarray(bound, info.dtype)
+            x = x if (float(x) - bound) * direction > 0 else np.nextafter(x, np.asarray(direction * np.inf, info.dtype))
+            return float(x) if abs(float(x)) >= info.tiny else direction * float(info.tiny)
+
+        return inner(self.lower, 1), None if self.upper is None else inner(self.upper, -1)
 
     def inverse(self, x: float, name: str, dtype) -> float:
         """`u` with `to(u) = x`; a start `x` on a bound (compared in the leaf's `dtype`) is
@@ -127,14 +144,45 @@ def _leaves(where, flt):
     return leaves
 
 
+class FitRun(eqx.Module):
+    """The history of one start of `fit`: `params` `(n + 1, k)` and `losses` `(n + 1,)`
+    of the iterates `0, …, n` (`n = steps` unless the convergence test stopped the run
+    earlier), the index `best_step` of the smallest loss, and `converged`."""
+
+    params: np.ndarray
+    losses: np.ndarray
+    best_step: int
+    converged: bool
+
+
 class FitResult(eqx.Module):
-    """Result of `fit`: the filter with the best parameters seen (`filter`), its
-    objective `loss`, and per-step histories `params` `(steps + 1, k)` and `losses`."""
+    """Result of `fit`: the filter with the best parameters seen over all steps and
+    starts (`filter`; never a worse later iterate), its objective `loss`, which `start`
+    and `best_step` it comes from and whether that start `converged`; `params`
+    `(n + 1, k)` and `losses` `(n + 1,)` are the history of that start, and `runs` holds
+    every start's `FitRun` (start 0 = the filter's own values)."""
 
     filter: PyTree
     loss: float
     params: np.ndarray
     losses: np.ndarray
+    best_step: int
+    converged: bool
+    start: int
+    runs: tuple[FitRun, ...]
+
+
+def _check_progress(progress, scan: bool):
+    """`(show, callback)` for `fit`'s `progress` argument."""
+    if progress is None or isinstance(progress, bool):
+        show, callback = bool(progress), None
+    elif callable(progress):
+        show, callback = False, progress
+    else:
+        raise ValueError(f"progress must be a bool or a callable(start, step, loss, params), got {progress!r}")
+    if scan and (show or callback is not None):
+        raise ValueError("progress is not available with scan=True (the loop is one compiled program)")
+    return show, callback
 
 
 def fit(
@@ -146,22 +194,50 @@ def fit(
     shared: bool = False,
     optimizer: optax.GradientTransformation | None = None,
     steps: int = 100,
+    tol: float | None = None,
+    patience: int = 3,
+    restarts: int = 0,
+    jitter: float = 1.0,
+    key: PRNGKeyArray | None = None,
+    scan: bool = False,
+    progress: bool | Callable[[int, int, float, np.ndarray], None] = False,
 ) -> FitResult:
     """Minimize `objective(filter)` over the leaves `where(filter)` with optax.
 
     Each tuned leaf is `lower + softplus(u)` (or `lower + (upper − lower) sigmoid(u)`
-    when `upper` is given) of an unconstrained `u`, so constraints such as `θ ≥ 0`,
-    `θ₂ ≥ 1` (`bounds=(1.0, None)`) or `0 ≤ ε < 0.5` (`bounds=(0.0, 0.5)`) always
-    hold. `bounds` is one `(lower, upper)` pair for all leaves or one per leaf
-    (`lower` finite; `upper` finite, or `None` / `inf` for no upper bound);
-    `shared=True` ties all selected leaves to one parameter (e.g. `θ₂ₓ = θ₂ᵥ`).
-    The initial values are the filter's current ones (moved `1e-3` inside a bound
-    they sit on, where the softplus gradient would vanish); a value outside its
-    bounds raises `ValueError`, and so do unequal values of leaves tied by `shared`.
-    `steps` is a positive integer. Default optimizer: `optax.adam(0.05)`. The whole
-    step (filter runs, solver derivatives) is jitted.
+    when `upper` is given) of an unconstrained `u`, clipped to the values of the leaf's
+    dtype strictly inside the bounds, so constraints such as `θ > 0`, `θ₂ > 1`
+    (`bounds=(1.0, None)`) or `0 < ε < 0.5` (`bounds=(0.0, 0.5)`) hold even where the
+    map saturates in float32. `bounds` is one `(lower, upper)` pair for all leaves or
+    one per leaf (`lower` finite; `upper` finite, or `None` / `inf` for no upper bound);
+    `shared=True` ties all selected leaves to one parameter (e.g. `θ₂ₓ = θ₂ᵥ`). The
+    initial values are the filter's current ones (moved `1e-3` inside a bound they sit
+    on, where the softplus gradient would vanish); a value outside its bounds raises
+    `ValueError`, and so do unequal values of leaves tied by `shared`.
+
+    - `steps`: the most optimizer steps per start (a positive integer). Default
+      optimizer: `optax.adam(0.05)`. Each step (filter runs, solver derivatives) is jitted.
+    - `tol`, `patience`: convergence test. A start stops, with `converged=True`, after
+      `patience` consecutive steps with `|L_i − L_{i−1}| ≤ tol |L_{i−1}|` and
+      `|p_i − p_{i−1}| ≤ tol |p_{i−1}|` for every parameter `p`; `tol=None` (default)
+      runs all `steps`. Running out of steps gives `converged=False`.
+    - `restarts`: further starts `u₀ + jitter · N(0, I)` in the unconstrained space
+      (drawn with `key`, default `jax.random.key(0)`); the result is the best iterate
+      by `objective` over all starts, and `runs` keeps every start's history.
+    - `scan=True` runs each start's loop inside one compiled `lax.scan` (steps after
+      convergence are skipped by `lax.cond`); no progress is reported then.
+    - `progress`: `True` shows a tqdm bar (a reporter installed by the caller, e.g.
+      the command line, gets the steps whatever this flag); a callable is called as
+      `progress(start, step, loss, params)` after every step.
     """
     steps = check_count("steps", steps)
+    patience = check_count("patience", patience)
+    restarts = check_count("restarts", restarts, minimum=0)
+    if tol is not None and not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be a positive number or None, got {tol!r}")
+    if not (np.isfinite(jitter) and jitter >= 0):
+        raise ValueError(f"jitter must be a finite number >= 0, got {jitter!r}")
+    show, callback = _check_progress(progress, scan)
     leaves = _leaves(where, flt)
     names = _leaf_names(flt, leaves)
     starts = [float(leaf) for leaf in leaves]
@@ -172,38 +248,98 @@ def fit(
     bnds = _parse_bounds(bounds, count)
     dtype = leaves[0].dtype
     u0 = jnp.asarray([b.inverse(x, name, dtype) for b, x, name in zip(bnds, starts[:count], names[:count], strict=True)], dtype)
+    u_starts = [u0]
+    if restarts:
+        noise = jax.random.normal(jax.random.key(0) if key is None else key, (restarts, count), dtype)
+        u_starts += list(u0 + jitter * noise)
     optimizer = optax.adam(0.05) if optimizer is None else optimizer
 
-    def build(u):
-        vals = jnp.stack([b.to(ui) for b, ui in zip(bnds, u, strict=True)])
-        vals = jnp.broadcast_to(vals, (len(leaves),)) if shared else vals
-        return eqx.tree_at(lambda f: _select(where, f), flt, tuple(v.astype(leaf.dtype) for v, leaf in zip(vals, leaves, strict=True)))
+    loss_dtype = jnp.result_type(float)  # losses are kept in the default float dtype
 
     def params_of(u):
         return jnp.stack([b.to(ui) for b, ui in zip(bnds, u, strict=True)])
 
-    @eqx.filter_jit
-    def update(u, opt_state):
-        loss, grad = jax.value_and_grad(lambda u: objective(build(u)))(u)
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes int counters and floats
-            upd, opt_state = optimizer.update(grad, opt_state, u)
-        return optax.apply_updates(u, upd), opt_state, loss
+    def build(u):
+        vals = params_of(u)
+        vals = jnp.broadcast_to(vals, (len(leaves),)) if shared else vals
+        return eqx.tree_at(lambda f: _select(where, f), flt, tuple(v.astype(leaf.dtype) for v, leaf in zip(vals, leaves, strict=True)))
 
-    u, opt_state = u0, optimizer.init(u0)
-    us, losses = [], []
-    for _ in range(steps):
-        new_u, opt_state, loss = update(u, opt_state)
-        us.append(u)
-        losses.append(float(loss))
-        u = new_u
-    us.append(u)
-    losses.append(float(eqx.filter_jit(lambda u: objective(build(u)))(u)))
-    best = int(np.nanargmin(losses))
+    def loss_of(u):
+        return objective(build(u))
+
+    def small(new, old):
+        return jnp.all(jnp.abs(new - old) <= tol * jnp.abs(old))  # False while `old` is NaN
+
+    def step(carry):
+        """Loss at `u`; convergence test against the previous iterate; optimizer update
+        unless converged. Returns the new carry and the record `(u, params(u), loss)`."""
+        u, opt_state, prev_loss, prev_params, streak, _ = carry
+        loss, grad = jax.value_and_grad(loss_of)(u)
+        loss, params = loss.astype(loss_dtype), params_of(u)
+        streak = jnp.where(small(loss, prev_loss) & small(params, prev_params), streak + 1, 0) if tol is not None else streak
+        done = streak >= patience
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes int counters and floats
+            upd, new_opt_state = optimizer.update(grad, opt_state, u)
+        new_u = jnp.where(done, u, optax.apply_updates(u, upd))
+        return (new_u, new_opt_state, loss, params, streak, done), (u, params, loss)
+
+    def initial(u):
+        return (u, optimizer.init(u), jnp.full((), jnp.nan, loss_dtype), jnp.full((count,), jnp.nan, dtype), jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+
+    @eqx.filter_jit
+    def scanned(u):
+        def body(carry, _):
+            def skip(c):
+                return c, (c[0], c[3], c[2])
+
+            done = carry[-1]
+            carry, record = jax.lax.cond(done, skip, step, carry)
+            return carry, (record, ~done)
+
+        return jax.lax.scan(body, initial(u), None, length=steps)
+
+    jit_step, jit_initial, jit_loss = eqx.filter_jit(step), eqx.filter_jit(initial), eqx.filter_jit(loss_of)
+    runs, us = [], []
+    with _progress.reporter(show).phase(f"tuning {count} parameter{'s' if count > 1 else ''}", steps * len(u_starts), "step") as phase:
+        for s, u_start in enumerate(u_starts):
+            if scan:
+                carry, ((u_hist, p_hist, l_hist), taken) = scanned(u_start)
+                n = int(np.sum(np.asarray(taken)))
+                phase.update(steps)
+                u_hist, p_hist, l_hist = list(u_hist[:n]), list(np.asarray(p_hist[:n])), [float(x) for x in np.asarray(l_hist[:n])]
+            else:
+                carry, u_hist, p_hist, l_hist = jit_initial(u_start), [], [], []
+                for i in range(steps):
+                    carry, (u, p, loss) = jit_step(carry)
+                    u_hist.append(u)
+                    p_hist.append(np.asarray(p))
+                    l_hist.append(float(loss))
+                    phase.update(1)
+                    if callback is not None:
+                        callback(s, i, l_hist[-1], p_hist[-1])
+                    if bool(carry[-1]):
+                        break
+            converged = bool(carry[-1])
+            if not converged:  # the iterate after the last step
+                u_hist.append(carry[0])
+                p_hist.append(np.asarray(params_of(carry[0])))
+                l_hist.append(float(jit_loss(carry[0])))
+            losses = np.asarray(l_hist)
+            best = 0 if np.all(np.isnan(losses)) else int(np.nanargmin(losses))
+            runs.append(FitRun(params=np.stack(p_hist), losses=losses, best_step=best, converged=converged))
+            us.append(u_hist[best])
+    bests = np.asarray([r.losses[r.best_step] for r in runs])
+    start = 0 if np.all(np.isnan(bests)) else int(np.nanargmin(bests))
+    run = runs[start]
     return FitResult(
-        filter=build(us[best]),
-        loss=losses[best],
-        params=np.stack([np.asarray(params_of(x)) for x in us]),
-        losses=np.asarray(losses),
+        filter=build(us[start]),
+        loss=float(run.losses[run.best_step]),
+        params=run.params,
+        losses=run.losses,
+        best_step=run.best_step,
+        converged=run.converged,
+        start=start,
+        runs=tuple(runs),
     )
 
 

@@ -3,6 +3,7 @@ and the optax / grid-search tuning helpers."""
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
@@ -47,7 +48,7 @@ def test_gradient_matches_finite_differences(objective, name):
 
 def test_fit_reduces_loss_and_respects_bounds(objective):
     mkf = wang_ye.mkf(1.08)
-    where = lambda f: (f.state_set.theta2, f.noise_set.theta2)  # noqa: E731
+    where = lambda f: (f.state_set.theta2, f.noise_set.theta2)
     res = tuning.fit(mkf, objective, where=where, bounds=(1.0, None), shared=True, optimizer=optax.adam(0.1), steps=15)
     assert res.params.shape == (16, 1) and res.losses.shape == (16,)
     assert res.loss < 0.995 * res.losses[0]
@@ -82,3 +83,179 @@ def test_sigmoid_bounds_and_bad_arguments(objective):
 def test_objective_is_jittable_as_a_function_of_the_filter(objective):
     flt = wang_ye.mkf()
     np.testing.assert_allclose(eqx.filter_jit(objective)(flt), objective(flt), rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- fit's options
+# Toy objectives of a filter's leaves with closed-form minima: cheap, and independent of the filters.
+
+HUBER_WHERE = lambda f: (f.outliers.eps, f.outliers.k)
+HUBER_BOUNDS = [(0.0, 0.5), (0.0, None)]
+
+
+def _quadratic(f):
+    return 1.0 + (f.outliers.k - 2.0) ** 2 + 3.0 * (f.outliers.eps - 0.2) ** 2  # minimum 1 at (eps, k) = (0.2, 2)
+
+
+def _streaks(losses, params, tol):
+    """NumPy re-implementation of the convergence test: length of the run of small relative changes at each step."""
+    out, streak = [], 0
+    for i in range(len(losses)):
+        small = i > 0 and abs(losses[i] - losses[i - 1]) <= tol * abs(losses[i - 1]) and np.all(np.abs(params[i] - params[i - 1]) <= tol * np.abs(params[i - 1]))
+        streak = streak + 1 if small else 0
+        out.append(streak)
+    return out
+
+
+def test_fit_convergence_test_stops_at_the_first_small_streak():
+    flt, tol, patience = jdrkf.HuberKF(0.05, 1.4), 1e-3, 2
+    res = tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, optimizer=optax.adam(0.1), steps=500, tol=tol, patience=patience)
+    streaks = _streaks(res.losses, res.params, tol)
+    assert res.converged and len(res.losses) < 501
+    assert streaks[-1] == patience and max(streaks[:-1]) < patience  # stopped exactly at the first streak of `patience`
+    np.testing.assert_allclose(res.params[res.best_step], [0.2, 2.0], atol=0.05)
+    # Running out of steps: converged is False and every step is recorded (plus the iterate after the last).
+    short = tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, steps=5, tol=1e-12)
+    assert not short.converged and short.losses.shape == (6,) and short.params.shape == (6, 2)
+    assert not tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, steps=5).converged  # tol=None: no test
+
+
+def test_fit_returns_the_best_iterate_not_the_last():
+    flt = jdrkf.HuberKF(0.05, 1.4)
+    res = tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, optimizer=optax.adam(1.0), steps=12)
+    assert res.losses[-1] > res.loss  # the large step size overshoots: the last iterate is worse
+    assert res.best_step == int(np.argmin(res.losses)) and res.loss == res.losses.min()
+    np.testing.assert_allclose([float(x) for x in HUBER_WHERE(res.filter)], res.params[res.best_step], rtol=1e-12)
+    np.testing.assert_allclose(float(_quadratic(res.filter)), res.loss, rtol=1e-12)
+
+
+def _double_well(f):
+    k = f.outliers.k
+    return (k - 1.0) ** 2 * (k - 3.0) ** 2 + 0.5 * (k - 3.0) ** 2 / (1 + (k - 3.0) ** 2)  # local minimum near 1, global at 3
+
+
+def test_fit_restarts_escape_a_local_minimum_and_keep_every_history():
+    flt = jdrkf.HuberKF(0.05, 0.7)
+    where = lambda f: f.outliers.k
+    single = tuning.fit(flt, _double_well, where=where, optimizer=optax.adam(0.05), steps=150)
+    assert abs(single.params[single.best_step, 0] - 1.0) < 0.1  # stuck in the local minimum
+    res = tuning.fit(flt, _double_well, where=where, optimizer=optax.adam(0.05), steps=150, restarts=5, jitter=1.5, key=jax.random.key(0))
+    assert len(res.runs) == 6
+    np.testing.assert_allclose(res.runs[0].params[0], [0.7], rtol=1e-12)  # start 0 = the filter's own value
+    np.testing.assert_array_equal(res.runs[0].losses, single.losses)
+    assert len({float(r.params[0, 0]) for r in res.runs}) == 6  # jittered starts
+    bests = [r.losses[r.best_step] for r in res.runs]
+    assert res.start == int(np.argmin(bests)) and res.loss == min(bests)
+    np.testing.assert_array_equal(res.losses, res.runs[res.start].losses)
+    assert abs(float(res.filter.outliers.k) - 3.0) < 0.05 and res.loss < 1e-3
+
+
+@pytest.mark.parametrize("tol", [None, 1e-3])
+def test_fit_in_lax_scan_matches_the_python_loop(tol):
+    flt = jdrkf.HuberKF(0.05, 1.4)
+    kw = {"where": HUBER_WHERE, "bounds": HUBER_BOUNDS, "optimizer": optax.adam(0.1), "steps": 200, "tol": tol, "restarts": 2}
+    loop, scanned = tuning.fit(flt, _quadratic, **kw), tuning.fit(flt, _quadratic, scan=True, **kw)
+    assert loop.converged == scanned.converged == (tol is not None)
+    for a, b in zip(loop.runs, scanned.runs, strict=True):
+        np.testing.assert_allclose(a.losses, b.losses, rtol=1e-12, atol=1e-300)
+        np.testing.assert_allclose(a.params, b.params, rtol=1e-12)
+        assert (a.best_step, a.converged) == (b.best_step, b.converged)
+
+
+def test_fit_in_lax_scan_through_a_dr_filter(objective):
+    kw = {"where": lambda f: (f.state_set.theta2, f.noise_set.theta2), "bounds": (1.0, None), "shared": True, "optimizer": optax.adam(0.1), "steps": 3}
+    loop, scanned = tuning.fit(wang_ye.mkf(1.08), objective, **kw), tuning.fit(wang_ye.mkf(1.08), objective, scan=True, **kw)
+    np.testing.assert_allclose(scanned.losses, loop.losses, rtol=1e-10)
+    np.testing.assert_allclose(scanned.params, loop.params, rtol=1e-10)
+
+
+def test_fit_progress_callback_and_bar(capsys):
+    flt, seen = jdrkf.HuberKF(0.05, 1.4), []
+    res = tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, steps=4, restarts=1,
+                     progress=lambda s, i, loss, p: seen.append((s, i, loss, np.array(p))))
+    assert [(s, i) for s, i, _, _ in seen] == [(0, 0), (0, 1), (0, 2), (0, 3), (1, 0), (1, 1), (1, 2), (1, 3)]
+    for s, i, loss, p in seen:
+        assert loss == res.runs[s].losses[i]
+        np.testing.assert_array_equal(p, res.runs[s].params[i])
+    tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, steps=3, progress=True)
+    assert "3/3" in capsys.readouterr().err  # tqdm's bar on stderr
+    with pytest.raises(ValueError, match="progress"):
+        tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, steps=3, progress=True, scan=True)
+    with pytest.raises(ValueError, match="progress"):
+        tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=HUBER_BOUNDS, steps=3, progress="yes")
+
+
+def test_bounds_are_never_reached_in_float32():
+    # The raw maps saturate in float32: sigmoid rounds to 1 and softplus vanishes next to the bound.
+    assert float(0.5 * jax.nn.sigmoid(jnp.float32(20.0))) == 0.5 and float(1.0 + jax.nn.softplus(jnp.float32(-20.0))) == 1.0
+    u = jnp.asarray([-1e30, -1e4, -100.0, -20.0, 0.0, 20.0, 100.0, 1e4, 1e30], jnp.float32)
+    for lower, upper in [(0.0, 0.5), (1.0, None), (0.0, 0.1), (0.1, None), (-0.3, 0.7)]:
+        x = np.asarray(jax.vmap(tuning._Bounds(lower, upper).to)(u), np.float64)
+        assert x.dtype == np.float64 and np.all(x > lower) and (upper is None or np.all(x < upper)), (lower, upper, x)
+    # Through fit: an objective that pushes ε to its upper bound and k to its lower bound, with huge steps.
+    flt = jdrkf.HuberKF(0.05, 1.4)
+    flt = eqx.tree_at(HUBER_WHERE, flt, (jnp.float32(0.05), jnp.float32(1.4)))
+    res = tuning.fit(flt, lambda f: f.outliers.k - f.outliers.eps, where=HUBER_WHERE, bounds=[(0.0, 0.5), (1.0, None)],
+                     optimizer=optax.sgd(1e4), steps=5)
+    eps, k = HUBER_WHERE(res.filter)
+    assert eps.dtype == jnp.float32 and k.dtype == jnp.float32
+    assert 0.49 < float(eps) < 0.5 and 1.0 < float(k) < 1.01
+    assert np.all(res.params[:, 0] < 0.5) and np.all(res.params[:, 1] > 1.0)
+
+
+def test_fit_rejects_bad_arguments():
+    flt = jdrkf.HuberKF(0.05, 1.4)
+    kw = {"where": HUBER_WHERE, "bounds": HUBER_BOUNDS}
+    for bad, match in [({"steps": 0}, "steps"), ({"steps": 2.5}, "steps"), ({"steps": True}, "steps"), ({"tol": 0.0}, "tol"),
+                       ({"tol": -1e-3}, "tol"), ({"tol": float("nan")}, "tol"), ({"patience": 0}, "patience"),
+                       ({"restarts": -1}, "restarts"), ({"restarts": 1.5}, "restarts"), ({"jitter": -1.0}, "jitter")]:
+        with pytest.raises(ValueError, match=match):
+            tuning.fit(flt, _quadratic, **kw, **bad)
+    with pytest.raises(ValueError, match="outside its bounds"):
+        tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=[(0.0, 0.01), (0.0, None)], steps=1)
+
+
+# --------------------------------------------------------------------------- gradients through several DR filters' tuned parameters
+
+
+def _central_difference(f, x, i, rel=1e-5):
+    h = rel * x[i]
+    up, dn = np.array(x), np.array(x)
+    up[i] += h
+    dn[i] -= h
+    return (float(f(up)) - float(f(dn))) / (2 * h)
+
+
+def _check_gradient(f, x, components=None):
+    grad = np.asarray(jax.grad(f)(jnp.asarray(x)))
+    jf = jax.jit(f)
+    for i in range(len(x)) if components is None else components:
+        fd = _central_difference(jf, x, i)
+        assert abs(fd) > 1e-6  # the objective depends on every tuned parameter
+        np.testing.assert_allclose(grad[i], fd, rtol=1e-5)
+
+
+def test_gradient_through_steady_state_drkf_radii(objective):
+    _check_gradient(lambda v: objective(jdrkf.SteadyStateDRKF(v[0], v[1])), [0.3, 0.2])
+
+
+@pytest.mark.parametrize("sensor", [
+    # c₁: the implicit gradient differs from central differences by 3.2e-5 relative, the same at
+    # relative steps 1e-3 and 1e-4 (so not finite-difference noise): a small bias of the marginal solver's derivative.
+    pytest.param(0, marks=pytest.mark.xfail(strict=True, reason="MarginalKL c₁ gradient off by ~3e-5 relative")),
+    1, 2])
+def test_gradient_through_marginal_drkf_per_sensor_radii(sensor):
+    from jdrkf.experiments import chen_fusion
+    from jdrkf.sets import MarginalKL
+
+    model, true, prior = chen_fusion.scenario("paper")
+    tr = jdrkf.simulate(jax.random.key(5), true, jdrkf.Gaussian(jnp.zeros(3), jnp.zeros((3, 3))), 40, 3)
+
+    def f(c):
+        means = jax.vmap(lambda y: jdrkf.MarginalDRKF(MarginalKL(c))(model, prior, y).filtered_means)(tr.observations)
+        return jnp.mean(jnp.sum((tr.states - means) ** 2, axis=-1))
+
+    _check_gradient(f, [0.05, 0.1, 0.02], components=[sensor])
+
+
+def test_gradient_through_wasserstein_drkf_three_parameters(objective):
+    _check_gradient(lambda v: objective(jdrkf.DRKF(state_set=Wasserstein(v[0]), noise_set=Wasserstein(v[1]), outliers=EpsContamination(v[2]))), [0.2, 0.1, 0.05])
