@@ -20,6 +20,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float
 
+from ._root import implicit_root
 
 __all__ = [
     "symmetrize",
@@ -31,6 +32,8 @@ __all__ = [
     "psd_solve_fwd",
     "psd_logdet",
     "psd_sqrt",
+    "psd_factor",
+    "tria",
     "bures_distance",
     "bures_distance_squared",
     "solve_dare",
@@ -233,6 +236,37 @@ def _psd_sqrt_jvp(primals, tangents):
     return x, symmetrize(dx)
 
 
+def psd_factor(a: Float[ArrayLike, "n n"]) -> Float[Array, "n n"]:
+    """Lower-triangular square root `L` (nonnegative diagonal, `L Lᵀ = a`) of a symmetric
+    PSD matrix: the Cholesky factor when `a` is numerically positive definite, else
+    `tria(psd_sqrt(a))` (singular PSD matrices: a known initial state, a rank-deficient
+    noise covariance, round-off below zero).
+
+    The Cholesky branch is fed the identity when it is not taken, so its derivative
+    stays finite; only the branch taken is evaluated (outside `vmap` over `a`).
+    """
+    a = symmetrize(jnp.asarray(a))
+    ok = jnp.all(jnp.isfinite(cholesky(lax.stop_gradient(a))))
+    chol = cholesky(jnp.where(ok, a, jnp.eye(a.shape[-1], dtype=a.dtype)))
+    return lax.cond(ok, lambda: chol, lambda: tria(psd_sqrt(a)))
+
+
+def tria(a: Float[ArrayLike, "n k"]) -> Float[Array, "n n"]:
+    """Triangularization: the lower-triangular `L` with nonnegative diagonal and
+    `L Lᵀ = a aᵀ`, from the QR decomposition `aᵀ = Q R` as `L = Rᵀ D` with
+    `D = diag(sign Rᵢᵢ)` (`L` is then the Cholesky factor of `a aᵀ` when that is positive
+    definite). A wide `a` (`k < n`) is padded with zero columns. The derivative (through
+    the QR's) needs `a aᵀ` positive definite.
+    """
+    a = jnp.asarray(a)
+    n, k = a.shape
+    if k < n:
+        a = jnp.concatenate([a, jnp.zeros((n, n - k), a.dtype)], axis=1)
+    low = jnp.linalg.qr(a.T, mode="r").T
+    sign = jnp.where(jnp.diagonal(low) < 0, -1.0, 1.0).astype(a.dtype)
+    return low * sign[None, :]
+
+
 @jax.custom_jvp
 def _nuclear_norm(m: Float[Array, "n n"]) -> Float[Array, ""]:
     return jnp.sum(jnp.linalg.svd(m, compute_uv=False))
@@ -331,15 +365,9 @@ def solve_dare(
     def residual(p):
         return _dare_residual(p, F, H, Q, R)
 
-    def solve(_, guess):
+    def solve(guess):
         del guess
-        return _dare_doubling(lax.stop_gradient(F), lax.stop_gradient(H), lax.stop_gradient(Q),
-                              lax.stop_gradient(R), max_iter, rtol)
+        return _dare_doubling(*jax.tree.map(lax.stop_gradient, (F, H, Q, R)), max_iter, rtol), ()
 
-    def tangent_solve(g, y):
-        # Dense solve of the linearized Riccati equation (n² unknowns).
-        jac = jax.jacfwd(g)(jnp.zeros_like(y))
-        x = jnp.linalg.solve(jac.reshape(n * n, n * n), y.reshape(n * n))
-        return x.reshape(n, n)
-
-    return lax.custom_root(residual, jnp.zeros((n, n), dtype), solve, tangent_solve)
+    # The linearized Riccati equation (n² unknowns) is solved densely.
+    return implicit_root(residual, solve, jnp.zeros((n, n), dtype))[0]

@@ -17,6 +17,7 @@ from ..sets._base import AbstractAmbiguitySet, radius
 from ..sets._outliers import AbstractOutlierModel, EpsContamination
 from ..sets._solve import worst_case, worst_case_joint
 from ..sets._wasserstein import Wasserstein
+from . import _sqrt
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
 
@@ -94,6 +95,74 @@ def _joint_step(flt, model, state, y, t, u, observed, joint_set):
     return filt, out
 
 
+def _decoupled_step_sqrt(flt, model, state, y, t, u, observed, state_set, noise_set, outliers):
+    """`_decoupled_step` in square-root form (state `(x̂, S)`, `P = S Sᵀ`): nominal
+    prediction `S⁻ = tria([F S, G S_Q])`, the worst-case covariances as factors
+    (`√θ₂ S⁻` for moment sets, else the Cholesky factor of the solver's matrix), the
+    array-form update `tria([[S_v*, H S_x*], [0, S_x*]]) = [[L, 0], [L_k, L_p]]`, the mean
+    `x̂⁻ + L_k ψ(L⁻¹ s)` (eq. 48; `L_k = Σx*HᵀL⁻ᵀ`) and the factor
+    `tria([√(1 − i) S_x*, √i L_p])` of eq. 49's `(1 − i) Σx* + i L_p L_pᵀ`."""
+    mean_pred, chol_pred = _sqrt.predict_sqrt(model, *state, t, u)
+    observed, h, r, resid = _measurement(model, y, t, observed)
+    num_obs = jnp.sum(observed.astype(resid.dtype))
+    nominal = _sqrt.outer(chol_pred)
+    dtype = nominal.dtype
+    i_min = jnp.ones((), dtype) if outliers is None else outliers.i_min().astype(dtype)
+    sol = worst_case(state_set, noise_set, nominal, h, r, i_min=i_min, rtol=flt.rtol, max_iter=flt.max_iter)
+    sx = _sqrt.worst_case_factor(state_set, chol_pred, sol.state_cov)
+    sv = _sqrt.worst_case_factor(noise_set, linalg.psd_factor(r), sol.noise_cov)
+    chol_s, cross, chol, failed = _sqrt.split(_sqrt.array_update(sx, h, sv), h.shape[0])
+    innov = resid - h @ mean_pred
+    if outliers is None:
+        mean = mean_pred + _sqrt.gain(chol_s, cross) @ innov
+    else:
+        mean = mean_pred + cross @ outliers.psi(solve_triangular(chol_s, innov, lower=True)).astype(dtype)
+        chol = linalg.tria(jnp.concatenate([jnp.sqrt(1.0 - i_min) * sx, jnp.sqrt(i_min) * chol], axis=1))
+    filt = Gaussian(mean, _sqrt.outer(chol))
+    info = {"nominal_prior_cov": nominal, "noise_cov": sol.noise_cov, "iterations": sol.iterations, "gap": sol.gap,
+            "predicted_chol_cov": sx, "filtered_chol_cov": chol}
+    out = StepOutput(
+        predicted=Gaussian(mean_pred, sol.state_cov),
+        filtered=filt,
+        loglik=_gaussian_loglik(chol_s, innov, num_obs),
+        info=info,
+        result=_result(failed, sol, filt, (state_set, noise_set, outliers)),
+    )
+    return (mean, chol), out
+
+
+def _joint_step_sqrt(flt, model, state, y, t, u, observed, joint_set):
+    """`_joint_step` in square-root form: with `(y, x)` ordered first, the factor of the
+    worst-case joint covariance is `[[L, 0], [L_k, L_p]]` (`√θ₂` times the array-form
+    factor of the nominal for a moment set, else the Cholesky factor of the solver's
+    matrix), so the conditional mean is `x̂⁻ + L_k L⁻¹ s` and `L_p` is the factor of the
+    Schur complement `S_xx − S_xy S_yy⁻¹ S_yx`."""
+    mean_pred, chol_pred = _sqrt.predict_sqrt(model, *state, t, u)
+    observed, h, r, resid = _measurement(model, y, t, observed)
+    num_obs = jnp.sum(observed.astype(resid.dtype))
+    n, m = chol_pred.shape[0], h.shape[0]
+    pred_cov = _sqrt.outer(chol_pred)
+    cross = pred_cov @ h.T
+    joint = jnp.block([[pred_cov, cross], [cross.T, h @ cross + r]])
+    sol = worst_case_joint(joint_set, linalg.symmetrize(joint), n, rtol=flt.rtol, max_iter=flt.max_iter)
+    yx = jnp.concatenate([jnp.arange(n, n + m), jnp.arange(n)])
+    nominal_factor = _sqrt.array_update(chol_pred, h, linalg.psd_factor(r))
+    low = _sqrt.worst_case_factor(joint_set, nominal_factor, sol.cov[yx][:, yx])
+    chol_s, cross_f, chol, failed = _sqrt.split(low, m)
+    innov = resid - h @ mean_pred
+    filt = Gaussian(mean_pred + _sqrt.gain(chol_s, cross_f) @ innov, _sqrt.outer(chol))
+    info = {"nominal_prior_cov": pred_cov, "joint_cov": sol.cov, "iterations": sol.iterations, "gap": sol.gap,
+            "predicted_chol_cov": linalg.tria(low[m:]), "filtered_chol_cov": chol}
+    out = StepOutput(
+        predicted=Gaussian(mean_pred, sol.cov[:n, :n]),
+        filtered=filt,
+        loglik=_gaussian_loglik(chol_s, innov, num_obs),
+        info=info,
+        result=_result(failed, sol, filt, (joint_set,)),
+    )
+    return (filt.mean, chol), out
+
+
 def _check_set(name, s):
     if s is not None and not isinstance(s, AbstractAmbiguitySet):
         raise ValueError(f"{name} must be a jdrkf.sets ambiguity set (Wasserstein, KL, Moment) or None, got {type(s).__name__}")
@@ -126,6 +195,10 @@ class DRKF(AbstractFilter):
     - `joint_set`: alternative to the two sets above (no outliers allowed).
     - `rtol`, `max_iter`: Frank–Wolfe tolerance (relative duality gap) and cap; a
       step that does not converge reports `RESULTS.solver_not_converged`.
+    - `square_root` (keyword): carry Cholesky factors of the covariances (see
+      `jdrkf.KalmanFilter`): worst cases of moment sets (and none) are factors in closed
+      form, `√θ₂ S`; those of Wasserstein and KL sets are factored after each solve.
+      The posterior of eq. 49 with outliers is `tria([√(1 − i) S_x*, √i L])`.
     - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
     Out-of-range set or outlier parameters raise `ValueError` when concrete; traced
@@ -153,6 +226,7 @@ class DRKF(AbstractFilter):
     rtol: float | None = eqx.field(default=None, static=True)
     max_iter: int = eqx.field(default=500, static=True)
     throw: bool = eqx.field(default=True, static=True, kw_only=True)  # declared first by AbstractFilter
+    square_root: bool = eqx.field(default=False, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
 
     def __check_init__(self):
@@ -164,13 +238,15 @@ class DRKF(AbstractFilter):
         if self.joint_set is not None and (self.state_set, self.noise_set, self.outliers) != (None, None, None):
             raise ValueError("joint_set excludes state_set, noise_set and outliers (Theorem 8 models (x, y) jointly, without outliers)")
 
-    def init(self, model, prior: Gaussian) -> Gaussian:
-        return prior
+    def init(self, model, prior: Gaussian):
+        return _sqrt.initial(prior) if self.square_root else prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         if self.joint_set is not None:
-            return _joint_step(self, model, state, y, t, u, observed, self.joint_set)
-        return _decoupled_step(self, model, state, y, t, u, observed, self.state_set, self.noise_set, self.outliers)
+            joint_step = _joint_step_sqrt if self.square_root else _joint_step
+            return joint_step(self, model, state, y, t, u, observed, self.joint_set)
+        decoupled_step = _decoupled_step_sqrt if self.square_root else _decoupled_step
+        return decoupled_step(self, model, state, y, t, u, observed, self.state_set, self.noise_set, self.outliers)
 
 
 class HuberKF(AbstractFilter):
@@ -181,26 +257,28 @@ class HuberKF(AbstractFilter):
     Update: `x̂ = x̂⁻ + P⁻Hᵀ S^{-1/2} ψ_k(S^{-1/2} s)` with Huber's clip `ψ_k` at `k`
     (eq. 39) and `P = P⁻ − (1 − ε)(1 − 2Φ(−k)) P⁻HᵀS⁻¹HP⁻` (eqs. 42, 49). `k`
     defaults to `K(ε)` of Lemma 1; the paper's experiments use `ε = 0.05, k = 1.4`.
-    Equal to `DRKF(outliers=EpsContamination(eps, k))`.
+    Equal to `DRKF(outliers=EpsContamination(eps, k))`; `square_root` as there.
     """
 
     outliers: EpsContamination
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
+    square_root: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, eps: Float[ArrayLike, ""] = 0.05, k: Float[ArrayLike, ""] | None = None, *, throw: bool = True,
-                 outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
+                 square_root: bool = False, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.outliers = EpsContamination(eps, k)
         self.rtol, self.max_iter = None, 500
-        self.throw, self.outputs = throw, outputs
+        self.throw, self.square_root, self.outputs = throw, square_root, outputs
 
-    def init(self, model, prior: Gaussian) -> Gaussian:
-        return prior
+    def init(self, model, prior: Gaussian):
+        return _sqrt.initial(prior) if self.square_root else prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
-        return _decoupled_step(self, model, state, y, t, u, observed, None, None, self.outliers)
+        decoupled_step = _decoupled_step_sqrt if self.square_root else _decoupled_step
+        return decoupled_step(self, model, state, y, t, u, observed, None, None, self.outliers)
 
 
 class WassersteinKF(AbstractFilter):
@@ -213,22 +291,26 @@ class WassersteinKF(AbstractFilter):
 
     The authors' Frank–Wolfe uses `2/(k+2)` steps, bisection and a relative gap of
     1e-4; jdrkf uses backtracking steps, Newton's method and a Newton polish, so its
-    solution is exact to round-off (and differentiable in `rho`).
+    solution is exact to round-off (and differentiable in `rho`). `square_root=True`
+    carries Cholesky factors: the worst-case joint covariance, ordered `(y, x)`, is
+    factored after each solve, and its blocks give the gain and the filtered factor.
     """
 
     rho: Float[Array, ""]
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     throw: bool = eqx.field(static=True)
+    square_root: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, rho: Float[ArrayLike, ""], *, rtol: float | None = None, max_iter: int = 500, throw: bool = True,
-                 outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
+                 square_root: bool = False, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
         self.rho = radius("rho", rho)
-        self.rtol, self.max_iter, self.throw, self.outputs = rtol, max_iter, throw, outputs
+        self.rtol, self.max_iter, self.throw, self.square_root, self.outputs = rtol, max_iter, throw, square_root, outputs
 
-    def init(self, model, prior: Gaussian) -> Gaussian:
-        return prior
+    def init(self, model, prior: Gaussian):
+        return _sqrt.initial(prior) if self.square_root else prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
-        return _joint_step(self, model, state, y, t, u, observed, Wasserstein(self.rho))
+        joint_step = _joint_step_sqrt if self.square_root else _joint_step
+        return joint_step(self, model, state, y, t, u, observed, Wasserstein(self.rho))

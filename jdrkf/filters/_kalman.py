@@ -16,6 +16,7 @@ from .. import linalg
 from .._gaussian import Gaussian
 from .._models import LinearModel
 from .._validation import is_concrete, psd_rtol
+from . import _sqrt
 from ._base import RESULTS, AbstractFilter, StepOutput
 
 
@@ -86,6 +87,30 @@ def update(
     return Gaussian(mean, cov), loglik, failed
 
 
+def update_sqrt(
+    model: LinearModel,
+    mean: Float[Array, " n"],
+    chol: Float[Array, "n n"],
+    y: Float[Array, " m"],
+    t: Int[ArrayLike, ""],
+    *,
+    observed: Bool[Array, " m"] | None = None,
+):
+    """`update` in square-root form, from the predicted factor `S⁻` (`P⁻ = S⁻S⁻ᵀ`): the
+    array form `tria([[S_R, H S⁻], [0, S⁻]]) = [[L_s, 0], [L_k, L]]` gives the innovation
+    factor `L_s`, the gain `K = L_k L_s⁻¹` and the filtered factor `L`
+    (`L Lᵀ = (I − K H) P⁻`); `m = m⁻ + K (y − μ_v − H m⁻)`.
+
+    Returns the filtered mean and factor, the log-likelihood increment and the failure
+    flag of `update`.
+    """
+    observed, h, r, resid = _measurement(model, y, t, observed)
+    chol_s, cross, chol_filt, failed = _sqrt.split(_sqrt.array_update(chol, h, linalg.psd_factor(r)), h.shape[0])
+    innov = resid - h @ mean
+    loglik = _gaussian_loglik(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
+    return mean + _sqrt.gain(chol_s, cross) @ innov, chol_filt, loglik, failed
+
+
 def _is_psd(cov: Float[Array, "n n"]) -> Bool[Array, ""]:
     """`λ_min(cov) ≥ −c n eps · Tr cov` (`c` of `psd_rtol`): the Cholesky factor of
     `cov + (c n eps Tr(cov) + tiny) I` is finite (singular PSD matrices, zero included, pass).
@@ -117,6 +142,11 @@ class KalmanFilter(AbstractFilter):
     **Arguments:**
 
     - `throw`: raise (through `eqx.error_if`) when a run fails; else only set `result`.
+    - `square_root` (keyword): carry Cholesky factors `P = S Sᵀ` instead of covariances,
+      for float32 on ill-conditioned models: `S⁻ = tria([F S, G S_Q])` and the array-form
+      update `update_sqrt` (QR triangularizations only; `jdrkf.linalg.tria`). The outputs
+      are the same covariances; with `"info"` in `outputs`, `info` holds the factors
+      (`predicted_chol_cov`, `filtered_chol_cov`).
     - `outputs`: the `FilterResult` fields to fill (see `jdrkf.AbstractFilter`).
 
     Under `jax.vmap` over runs the covariance recursion does not depend on the data
@@ -132,12 +162,19 @@ class KalmanFilter(AbstractFilter):
     """
 
     throw: bool = eqx.field(default=True, static=True)
+    square_root: bool = eqx.field(default=False, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
 
-    def init(self, model: LinearModel, prior: Gaussian) -> Gaussian:
-        return prior
+    def init(self, model: LinearModel, prior: Gaussian):
+        return _sqrt.initial(prior) if self.square_root else prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
+        if self.square_root:
+            mean_pred, chol_pred = _sqrt.predict_sqrt(model, *state, t, u)
+            mean, chol, loglik, failed = update_sqrt(model, mean_pred, chol_pred, y, t, observed=observed)
+            pred, filt = Gaussian(mean_pred, _sqrt.outer(chol_pred)), Gaussian(mean, _sqrt.outer(chol))
+            info = {"predicted_chol_cov": chol_pred, "filtered_chol_cov": chol}
+            return (mean, chol), StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=_step_result(failed, filt))
         pred = predict(model, state, t, u)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
