@@ -48,6 +48,11 @@ class RESULTS(eqx.Enumeration):
         "The filtered mean or covariance became non-finite (inf/NaN). Common causes: inf in the "
         "inputs, an unstable model over a long horizon in float32, or an upstream bug."
     )
+    nonfinite_jacobian = (
+        "A Jacobian of the transition or observation function of a nonlinear model (ExtendedKF) was "
+        "not finite at the linearisation point (e.g. sqrt or log at 0, or a mean that diverged). Check "
+        "f and h at the estimates, or use a derivative-free filter (UnscentedKF)."
+    )
     indefinite_covariance = (
         "The filtered covariance lost positive semidefiniteness beyond rounding (its smallest "
         "eigenvalue fell below -100 n eps Tr P): the covariance recursion is numerically unstable "
