@@ -19,6 +19,7 @@ class LinearModel(eqx.Module):
     For `k = 1..T` (array index `t = k − 1`):
 
     $$x_k = F_t x_{k-1} + B_t u_t + G_t w_t,\quad w_t \sim (\mu_{w,t}, Q_t)$$
+
     $$y_k = H_t x_k + v_t,\quad v_t \sim (\mu_{v,t}, R_t)$$
 
     **Arguments:**

@@ -71,6 +71,7 @@ def rts_backward(model: LinearModel | MultiSensorModel, prior: Gaussian, result:
 
     $$G_k = P_{k|k} F_{k+1}^\top P_{k+1|k}^{-1},\quad
     m_{k|T} = m_{k|k} + G_k (m_{k+1|T} - m_{k+1|k}),$$
+
     $$P_{k|T} = P_{k|k} + G_k (P_{k+1|T} - P_{k+1|k}) G_k^\top,\quad
     \mathrm{Cov}(x_{k+1}, x_k \mid y_{1:T}) = P_{k+1|T} G_k^\top,$$
 
