@@ -27,6 +27,21 @@ Extra rows (labelled, not goals): jdrkf with dynamax's outputs (the default
 `outputs`: filtered means, covariances, marginal log-likelihood) and with
 `outputs="all"`.
 
+DR rows (`--dr`, on by default; `--no-dr` skips them): the cost of the run-time range check
+of traced hyper-parameters. Two shared-covariance DR filters, `DRKF(Wasserstein(θ),
+Wasserstein(θ))` and `WassersteinKF(θ)` (θ = 0.1), through `jax.jit(jax.vmap(flt, in_axes=(None,
+None, 0)))` on the same system, B = 2000 runs of T = 200 steps (`--dr-B`, `--dr-T`), each in
+three builds compiled ahead of time: (a) the radii as Python floats (checked once, eagerly,
+when the set is built; constants in the program), (b) the radii as traced arguments of the
+jitted function, so that the range check (`Wasserstein.valid()`, reported as
+`RESULTS.invalid_hyperparameter`) is in the compiled program, and (c) measurement only: (b)
+compiled with `Wasserstein.valid` patched to return `True` inside this script, i.e. without
+the check. The three are called interleaved (`--repeats` rounds); the check's cost is the
+ratio of medians (b)/(c). Before timing: (a), (b), (c) agree on the filtered means, and with
+θ = −0.1, (b) raises the invalid-hyper-parameter error while (c) does not (so (c) really
+lacks the check). `--dr-dtypes` picks the dtypes (default float64 only, to keep the section
+under a minute on 2 cores).
+
 Before timing, outputs are compared: tour vs dynamax and vs the minimal KF (filtered
 means), the per-run path vs NumPy (means, covariances, log-likelihoods); tolerances
 1e-8 (float64) and 1e-3 (float32). The script exits with status 1 if a check fails.
@@ -286,11 +301,13 @@ def run_child(args) -> dict:
                                                 "loglik": (r_run.marginal_loglik, r_np[2])})
             del r_run, r_np
 
+    dr = run_dr(args, dtype, model, prior, tol) if args.dr and dtype in args.dr_dtypes else None
     return {
         "dtype": dtype,
         "rows": rows,
         "checks": checks,
-        "checks_ok": all(ck["ok"] for ck in checks),
+        "checks_ok": all(ck["ok"] for ck in checks) and (dr is None or dr["checks_ok"]),
+        "dr": dr,
         "jdrkf_source_sha256": {"start": source_hash, "end": package_source_hash(jdrkf)},
         "versions": {
             "python": platform.python_version(), "jax": jax.__version__, "jaxlib": __import__("jaxlib").__version__,
@@ -299,6 +316,97 @@ def run_child(args) -> dict:
         },
         "device": device_summary(jax),
     }
+
+
+DR_THETA = 0.1
+
+
+def run_dr(args, dtype, model, prior, tol) -> dict:
+    """DR rows: builds (a) concrete radii, (b) traced radii, (c) traced radii without the
+    run-time check (module docstring); interleaved timing, checks, cost ratios."""
+    import jax
+    import jax.numpy as jnp
+    import jdrkf
+    from jdrkf.sets import Wasserstein
+
+    ys_np, _ = simulate(args.dr_B, args.dr_T, args.seed)
+    ys = jnp.asarray(ys_np.astype(dtype))
+    filters = {  # name -> filter from radii (two for DRKF, one for WassersteinKF)
+        "DRKF(Wasserstein, Wasserstein)": (lambda tx, tv: jdrkf.DRKF(state_set=Wasserstein(tx), noise_set=Wasserstein(tv)), 2),
+        "WassersteinKF": (lambda rho: jdrkf.WassersteinKF(rho), 1),
+    }
+    valid = Wasserstein.valid
+
+    def build(make, k, variant, thetas):
+        """Lower and compile one build; returns (callable, its radii arguments, compile seconds)."""
+        if variant == "a":
+            flt = make(*(DR_THETA,) * k)
+            fn, radii = (lambda ys: jax.vmap(flt, in_axes=(None, None, 0))(model, prior, ys)), ()
+        else:
+            fn = lambda radii, ys: jax.vmap(make(*radii), in_axes=(None, None, 0))(model, prior, ys)
+            radii = thetas
+        t0 = time.perf_counter()
+        # Compiled ahead of time; inner jit caches are cleared around the patched build so
+        # that neither build reuses the other's traced functions.
+        jax.clear_caches()
+        if variant == "c":
+            Wasserstein.valid = lambda self: jnp.asarray(True)
+        try:
+            compiled = jax.jit(fn).lower(*((radii,) if radii else ()), ys).compile()
+        finally:
+            Wasserstein.valid = valid
+            jax.clear_caches()
+        return compiled, radii, time.perf_counter() - t0
+
+    rows, checks, cost = [], [], []
+    for name, (make, k) in filters.items():
+        thetas = tuple(jnp.asarray(DR_THETA, dtype) for _ in range(k))
+        builds = {v: build(make, k, v, thetas) for v in "abc"}
+
+        def call(v, radii=None, builds=builds):
+            compiled, default, _ = builds[v]
+            r = default if radii is None else radii
+            return compiled(r, ys) if v != "a" else compiled(ys)
+
+        outs = {v: jax.block_until_ready(call(v)) for v in "abc"}
+        entry = {"B": args.dr_B, "dtype": dtype, "vs": f"{name}: (a), (b), (c) filtered means"}
+        entry["max_abs_diff_means"] = max(maxabs(outs[v].filtered_means, outs["a"].filtered_means) for v in "bc")
+        entry["ok"] = entry["max_abs_diff_means"] <= tol * max(1.0, float(np.max(np.abs(np.asarray(outs["a"].filtered_means)))))
+        del outs
+        bad = tuple(jnp.asarray(-DR_THETA, dtype) for _ in range(k))
+        raised = {}
+        for v in "bc":
+            try:
+                jax.block_until_ready(call(v, bad))
+                raised[v] = ""
+            except Exception as e:  # noqa: BLE001 (the filter's error, whatever its class)
+                raised[v] = str(e)
+        b_flags = "hyper-parameter" in raised["b"]
+        c_flags = "hyper-parameter" in raised["c"]
+        entry["negative_radius_flagged"] = {"b": b_flags, "c": c_flags}
+        entry["ok"] = bool(entry["ok"] and b_flags and not c_flags)
+        checks.append(entry)
+        log(f"[{dtype}] DR {name}: means diff {entry['max_abs_diff_means']:.3g}, θ<0 flagged by (b) {b_flags}, "
+            f"by (c) {c_flags}" + (" ok" if entry["ok"] else " FAIL"))
+
+        times = {v: [] for v in "abc"}
+        for _ in range(args.repeats):
+            for v in "abc":
+                t0 = time.perf_counter()
+                jax.block_until_ready(call(v))
+                times[v].append(time.perf_counter() - t0)
+        labels = {"a": "(a) concrete radii", "b": "(b) traced radii, run-time check",
+                  "c": "(c) traced radii, check removed (measurement only)"}
+        med = {v: statistics.median(times[v]) for v in "abc"}
+        for v in "abc":
+            rows.append({"impl": f"{name} {labels[v]}", "filter": name, "variant": v, "kind": "dr", "dtype": dtype,
+                         "B": args.dr_B, "T": args.dr_T, "compile_s": builds[v][2], "run_s": med[v],
+                         "run_min_s": min(times[v]), "run_times_s": times[v], "steps_per_s": args.dr_B * args.dr_T / med[v]})
+        cost.append({"filter": name, "dtype": dtype, "B": args.dr_B, "T": args.dr_T,
+                     "check_cost_b_over_c": med["b"] / med["c"], "traced_over_concrete_b_over_a": med["b"] / med["a"],
+                     "pairwise_median_b_over_c": statistics.median(b / c for b, c in zip(times["b"], times["c"]))})
+        log(f"[{dtype}] DR {name}: (b)/(c) = {cost[-1]['check_cost_b_over_c']:.3f}, (b)/(a) = {cost[-1]['traced_over_concrete_b_over_a']:.3f}")
+    return {"theta": DR_THETA, "rows": rows, "checks": checks, "check_cost": cost, "checks_ok": all(c["ok"] for c in checks)}
 
 
 # --------------------------------------------------------------------------- parent
@@ -361,6 +469,27 @@ def build_markdown(result) -> str:
     for ck in result["checks"]:
         diffs = ", ".join(f"{k.removeprefix('max_abs_diff_')} {v:.2e}" for k, v in ck.items() if k.startswith("max_abs"))
         lines.append(f"| {ck['dtype']} | {ck['B']} | {ck['vs']} | {diffs} | {'yes' if ck['ok'] else 'no'} |")
+    dr = result.get("dr")
+    if dr and dr["rows"]:
+        lines += ["", "## DR rows: cost of the run-time hyper-parameter check", "",
+                  (f"θ = {dr['theta']}, B = {dr['B']}, T = {dr['T']}; `jax.jit(jax.vmap(flt, in_axes=(None, None, 0)))`, "
+                   "compiled ahead of time; (a) radii as Python floats (checked eagerly), (b) radii traced (range check "
+                   "in the program), (c) as (b) with `Wasserstein.valid` patched to `True` in this script (measurement "
+                   f"only); {cfg['repeats']} interleaved rounds, medians."), "",
+                  "| filter | dtype | check cost (b)/(c) | pairwise median (b)/(c) | traced/concrete (b)/(a) |",
+                  "|---|---|---:|---:|---:|"]
+        for c in dr["check_cost"]:
+            lines.append(f"| {c['filter']} | {c['dtype']} | **{c['check_cost_b_over_c']:.3f}** | "
+                         f"{c['pairwise_median_b_over_c']:.3f} | {c['traced_over_concrete_b_over_a']:.3f} |")
+        lines += ["", "| impl | dtype | compile s | run s (median) | run s (best) | steps/s |", "|---|---|---:|---:|---:|---:|"]
+        for r in dr["rows"]:
+            lines.append(f"| {r['impl']} | {r['dtype']} | {r['compile_s']:.2f} | {r['run_s']:.4g} | {r['run_min_s']:.4g} | "
+                         f"{r['steps_per_s']:.3g} |")
+        lines += ["", "| dtype | filter: (a), (b), (c) means agree | θ = −0.1 flagged by (b) / (c) | ok |", "|---|---|---|---|"]
+        for ck in dr["checks"]:
+            flags = ck["negative_radius_flagged"]
+            lines.append(f"| {ck['dtype']} | {ck['vs']}: max abs diff {ck['max_abs_diff_means']:.2e} | "
+                         f"{'yes' if flags['b'] else 'no'} / {'yes' if flags['c'] else 'no'} | {'yes' if ck['ok'] else 'no'} |")
     return "\n".join(lines) + "\n"
 
 
@@ -375,7 +504,9 @@ def run_parent(args) -> int:
             cmd = [sys.executable, os.path.abspath(__file__), "--child", "--dtype", dtype, "--child-out", path,
                    "--T", str(args.T), "--repeats", str(args.repeats), "--seed", str(args.seed),
                    "--platform", args.platform, "--numpy-max-runs", str(args.numpy_max_runs),
-                   "--numpy-repeats", str(args.numpy_repeats), "--batch-sizes", *map(str, args.batch_sizes)]
+                   "--numpy-repeats", str(args.numpy_repeats), "--batch-sizes", *map(str, args.batch_sizes),
+                   "--dr" if args.dr else "--no-dr", "--dr-B", str(args.dr_B), "--dr-T", str(args.dr_T),
+                   "--dr-dtypes", *args.dr_dtypes]
             before = loadavg()
             proc = subprocess.run(cmd)
             if proc.returncode != 0:
@@ -393,7 +524,8 @@ def run_parent(args) -> int:
         "command": " ".join(["python", "benchmarks/kf_throughput.py", *sys.argv[1:]]),
         "wall_s": time.perf_counter() - t_start,
         "config": {"batch_sizes": args.batch_sizes, "T": args.T, "repeats": args.repeats, "seed": args.seed,
-                   "dtypes": args.dtypes, "platform": args.platform, "missing_fraction": MISSING_FRACTION},
+                   "dtypes": args.dtypes, "platform": args.platform, "missing_fraction": MISSING_FRACTION,
+                   "dr": args.dr, "dr_B": args.dr_B, "dr_T": args.dr_T, "dr_dtypes": args.dr_dtypes},
         "system": SYSTEM,
         "meta": {
             "cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
@@ -405,6 +537,10 @@ def run_parent(args) -> int:
         "goal": goal_table(rows),
         "checks": [k for c in children for k in c["checks"]],
         "checks_ok": all(c["checks_ok"] for c in children),
+        "dr": {"theta": DR_THETA, "B": args.dr_B, "T": args.dr_T,
+               "rows": [r for c in children if c["dr"] for r in c["dr"]["rows"]],
+               "checks": [k for c in children if c["dr"] for k in c["dr"]["checks"]],
+               "check_cost": [k for c in children if c["dr"] for k in c["dr"]["check_cost"]]} if args.dr else None,
     }
     stem = os.path.join(out_dir, f"kf_throughput_{args.tag}")
     with open(stem + ".json", "w") as f:
@@ -432,6 +568,12 @@ def main(argv=None) -> int:
     p.add_argument("--numpy-max-runs", type=int, default=10_000, help="largest B for the per-run/NumPy rows")
     p.add_argument("--seed", type=int, default=DATA_SEED, help="NumPy seed of the simulated data")
     p.add_argument("--dtypes", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
+    p.add_argument("--dr", action=argparse.BooleanOptionalAction, default=True,
+                   help="DR rows: cost of the run-time hyper-parameter check (default on)")
+    p.add_argument("--dr-B", type=int, default=None, help="runs of the DR rows (default 2000; --quick 100)")
+    p.add_argument("--dr-T", type=int, default=None, help="time steps of the DR rows (default 200; --quick 50)")
+    p.add_argument("--dr-dtypes", nargs="+", default=["float64"], choices=["float32", "float64"],
+                   help="dtypes of the DR rows (among --dtypes; default float64)")
     p.add_argument("--out", default=os.path.join(here, "results"), help="output directory")
     p.add_argument("--tag", default=None, help="output file stem suffix (default the platform, '_quick' appended)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -442,6 +584,10 @@ def main(argv=None) -> int:
         args.batch_sizes = [100] if args.quick else ([10_000, 100_000, 1_000_000] if args.platform == "gpu" else [10_000])
     if args.T is None:
         args.T = 100 if args.quick else 1000
+    if args.dr_B is None:
+        args.dr_B = 100 if args.quick else 2000
+    if args.dr_T is None:
+        args.dr_T = 50 if args.quick else 200
     if args.tag is None:
         args.tag = args.platform + ("_quick" if args.quick else "")
     if args.child:
