@@ -107,7 +107,7 @@ def fresh_compilation():
     jax.clear_caches()
 
 
-@pytest.mark.parametrize("kind", ["moment", "kl"])
+@pytest.mark.parametrize("kind", ["moment", pytest.param("kl", marks=pytest.mark.slow)])
 def test_marginal_barrier_cut_short_is_not_converged(monkeypatch, fresh_compilation, kind):
     from jdrkf.sets import _marginal
 

@@ -71,6 +71,7 @@ def test_em_nominals_and_closed_loop_batch():
     np.testing.assert_allclose(np.asarray(cost0), out["SS-KF"], rtol=1e-8)
 
 
+@pytest.mark.slow  # ~30 s
 def test_lqr_experiment_small(tmp_path):
     # Same shapes as above, so the two filters are not compiled again.
     report = jang.run_lqr(3, seed=0, train_runs=3, settings=("gaussian",), names=("SS-KF", "SS-DRKF"))

@@ -438,6 +438,7 @@ def test_observed_validation(rng):
         ci(ms, jdrkf.Gaussian(np.zeros(2), np.eye(2)), ys3, observed=np.ones((5, 3), bool))
 
 
+@pytest.mark.slow  # ~30 s: compiles every output subset
 def test_outputs_default_all_and_subsets(rng):
     fields, u, m0, P0, ys = _time_varying_problem(rng)
     model, prior = jdrkf.LinearModel(**fields), jdrkf.Gaussian(m0, P0)

@@ -124,6 +124,7 @@ def test_matches_dynamax_parallel_inference(monkeypatch):
     np.testing.assert_allclose(res.smoothed_covariances, post.smoothed_covariances, rtol=1e-9, atol=1e-11)
 
 
+@pytest.mark.slow  # ~30 s
 def test_jit_vmap_grad_against_finite_differences():
     model, prior, _, inputs, _ = _random_problem(15, T=20, time_varying=False)
     runs = 3

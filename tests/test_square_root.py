@@ -96,7 +96,7 @@ def test_kalman_square_root_singular_prior_and_process_noise_time_varying():
         np.testing.assert_allclose(getattr(res, name), ref[name], rtol=0, atol=1e-10, err_msg=name)
 
 
-DEFAULT_TIER = ("KF", "DRKF-W", "DRKF-joint-KL")  # the rest in the slow tier (each compiles two filters)
+DEFAULT_TIER = ("KF", "DRKF-KL-moment")  # the rest in the slow tier (each compiles two filters)
 
 
 @pytest.mark.parametrize("name", [n if n in DEFAULT_TIER else pytest.param(n, marks=pytest.mark.slow) for n in sorted(FILTERS)])
@@ -139,7 +139,7 @@ def _time_loop_carry(jaxpr, T):
     return [tuple(v.aval.shape) for v in eqn.invars[c:c + k]]
 
 
-@pytest.mark.parametrize("name", ["KF", pytest.param("DRKF-W", marks=pytest.mark.slow), "WassersteinKF",
+@pytest.mark.parametrize("name", ["KF", pytest.param("DRKF-W", marks=pytest.mark.slow), pytest.param("WassersteinKF", marks=pytest.mark.slow),
                                   pytest.param("DRKF-moment-outliers", marks=pytest.mark.slow)])
 def test_plain_vmap_keeps_the_factor_recursion_unbatched(name):
     model, prior, ys, observed = _random_system(0, T=9)
