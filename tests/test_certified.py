@@ -136,3 +136,28 @@ def test_maxent_transport_infeasible_budget_is_not_converged():
     bad = solve(0.5 * c_min)  # traced: no eager ValueError
     assert not bool(bad.feasible)
     assert not bool(bad.converged)
+
+
+def test_wasserstein_worst_case_where_frank_wolfe_stalls():
+    """An ill-conditioned instance (two nearly parallel rows of H on two of four states,
+    R = diag(1e-2, 1e-4)): Frank–Wolfe's line search stalls after 3 iterations at a
+    relative gap of 2.5e-6 and the chord steps cannot contract from there (once reported
+    `converged=False`); damped Newton now finishes. Oracle: the NumPy Frank–Wolfe of the
+    test oracles run to a relative gap of 1e-12 (Clarabel reports this SDP inaccurate)."""
+    from sdp_oracles import decoupled_gradient, frank_wolfe, posterior_trace, set_lmo
+
+    r = np.random.default_rng(349)
+    a = r.normal(size=(4, 4))
+    P = a @ a.T / 4 + np.diag(10 ** r.uniform(-4, 0, 4))
+    H = np.zeros((2, 4))
+    H[:, :2] = r.normal(size=(2, 2))
+    R = np.diag([1e-2, 1e-4])
+    wc = worst_case(Wasserstein(0.05), Wasserstein(0.01), P, H, R)
+    (sx, sv), gap, _ = frank_wolfe(
+        lambda a, b: posterior_trace(a, H, b), lambda a, b: decoupled_gradient(a, H, b),
+        [lambda g: set_lmo(("wasserstein", 0.05), g, P), lambda g: set_lmo(("wasserstein", 0.01), g, R)], [P, R], rtol=1e-12,
+    )
+    assert bool(wc.converged) and float(wc.gap) <= 1e-10 * float(wc.value)
+    np.testing.assert_allclose(float(wc.value), posterior_trace(sx, H, sv), rtol=1e-10)
+    np.testing.assert_allclose(wc.state_cov, sx, atol=1e-4)
+    np.testing.assert_allclose(wc.noise_cov, sv, atol=1e-4)

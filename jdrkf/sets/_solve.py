@@ -11,18 +11,20 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
-from .._root import chord, default_rtol, implicit_root
-from .._validation import as_float_array, check_covariance
-from ._base import AbstractAmbiguitySet, radius
+from .._root import chord, default_rtol, implicit_root, newton
+from .._validation import as_float_array, check_covariance, check_scalar
+from ._base import AbstractAmbiguitySet
 from ._moment import Moment
 from ._wasserstein import Wasserstein
 
 # Frank–Wolfe stops at this relative gap (or `rtol` if looser); the chord iterations take over.
 _START_RTOL = 1e-5
 _CHORD_MAX_STEPS = 30
+_NEWTON_MAX_STEPS = 30
 
 
 class WorstCase(eqx.Module):
@@ -31,7 +33,7 @@ class WorstCase(eqx.Module):
     - `state_cov`, `noise_cov`: the worst-case prior `Σx*` and noise `Σv*` covariances.
     - `value`: `Tr(Σx* − i_min Σx*Hᵀ(HΣx*Hᵀ + Σv*)⁻¹HΣx*)`, the trace of the worst-case
       posterior covariance (eq. 41).
-    - `iterations`: Frank–Wolfe iterations plus chord steps; `gap`: a duality gap at the
+    - `iterations`: Frank–Wolfe iterations plus chord (and any damped Newton) steps; `gap`: a duality gap at the
       solution (an upper bound on the optimal value minus `value`, see `_solve`);
       `converged`: `gap ≤ rtol · value` with the sets' multiplier equations solved to `rtol`.
     """
@@ -275,7 +277,8 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
     written as the smooth system `_reduced_residual` in the gain `K` and the multipliers.
     Forward: Frank–Wolfe to a relative gap `max(rtol, _START_RTOL)`, then chord steps on
     that system to round-off (`chord`; the Jacobian in closed form for two
-    Wasserstein balls, `make_jacobian`, else `jax.jacfwd`). Derivatives: the implicit function theorem on the same system
+    Wasserstein balls, `make_jacobian`, else `jax.jacfwd`); if the chord steps stop short
+    of `rtol`, damped Newton (`newton`, a fresh Jacobian each step). Derivatives: the implicit function theorem on the same system
     (`lax.custom_root`); the blocks are smooth functions of its solution.
 
     `gap` is the duality gap `Σⱼ⟨Dⱼ(K), Σⱼ⟩ − f(Σ) ≥ max f − f(Σ)` at the solution: `Σ(K)`
@@ -291,8 +294,20 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
         obj = make_objective(*p_)
         s, iters, mults = _frank_wolfe(obj.fg, sets_, noms_, max(rtol, _START_RTOL), max_iter)
         jacobian = None if make_jacobian is None else make_jacobian(*p_, sets_, noms_)
-        x, (_, equations), steps = chord(_reduced_residual(obj, sets_, noms_), (obj.gain(s), mults), jacobian, _CHORD_MAX_STEPS)
-        return x, (iters + steps, jnp.max(jnp.abs(jnp.stack(equations))))
+        residual = _reduced_residual(obj, sets_, noms_)
+        x, r, steps = chord(residual, (obj.gain(s), mults), jacobian, _CHORD_MAX_STEPS)
+
+        def damped(x):
+            # The chord steps failed to reach the tolerance: the start lies outside their
+            # contraction region (seen on ill-conditioned H, R where Frank–Wolfe stalls at a
+            # gap ~1e-6). Damped Newton with a fresh Jacobian each step takes over.
+            result = newton(residual, x, _NEWTON_MAX_STEPS, ftol=rtol)
+            return result.x, result.iterations
+
+        far = jnp.linalg.norm(ravel_pytree(r)[0]) > rtol * (1.0 + jnp.linalg.norm(ravel_pytree(x)[0]))  # newton's own test
+        x, more = lax.cond(far, damped, lambda x: (x, jnp.zeros((), steps.dtype)), x)
+        _, equations = residual(x)
+        return x, (iters + steps + more, jnp.max(jnp.abs(jnp.stack(equations))))
 
     obj = make_objective(*params)
     k0 = jax.eval_shape(obj.gain, nominals)
@@ -417,7 +432,7 @@ def wasserstein_mmse(
     """Decoupled Wasserstein DR-MMSE problem (Wang & Ye 2022, eqs. 32–35; Jang et al.
     2025, eq. 5): separate `W₂` balls of radii `theta_x` around `prior_cov` and
     `theta_v` around `noise_cov`. See `worst_case`."""
-    sets = Wasserstein(radius("theta_x", theta_x)), Wasserstein(radius("theta_v", theta_v))
+    sets = Wasserstein(check_scalar("theta_x", theta_x)), Wasserstein(check_scalar("theta_v", theta_v))
     return worst_case(*sets, prior_cov, H, noise_cov, i_min=i_min, rtol=rtol, max_iter=max_iter)
 
 
@@ -427,4 +442,4 @@ def wasserstein_mmse_joint(
     """Joint Wasserstein DR-MMSE problem: one `W₂` ball of radius `rho` around the
     covariance `cov` of `(x, y)` (Shafieezadeh-Abadeh et al. 2018; Theorem 8 of
     Wang & Ye 2022). See `worst_case_joint`."""
-    return worst_case_joint(Wasserstein(radius("rho", rho)), cov, n, rtol=rtol, max_iter=max_iter)
+    return worst_case_joint(Wasserstein(check_scalar("rho", rho)), cov, n, rtol=rtol, max_iter=max_iter)
