@@ -21,7 +21,7 @@ from . import linalg
 from ._gaussian import Gaussian
 from ._models import LinearModel
 from ._noise import AbstractNoise
-from ._simulate import _check_law
+from ._simulate import check_law
 from ._validation import as_float_array, check_shape
 from .filters._base import RESULTS, AbstractFilter
 
@@ -251,9 +251,9 @@ def closed_loop(
     num_steps = reference.shape[0] - 1
     model.check_horizon(num_steps)
     true_model.check_horizon(num_steps)
-    initial_state = _check_law("initial_state", prior if initial_state is None else initial_state, n, dtype)
-    process_noise = _check_law("process_noise", process_noise, true_model.Q.shape[-1], dtype)
-    measurement_noise = _check_law("measurement_noise", measurement_noise, m, dtype)
+    initial_state = check_law("initial_state", prior if initial_state is None else initial_state, n, dtype)
+    process_noise = check_law("process_noise", process_noise, true_model.Q.shape[-1], dtype)
+    measurement_noise = check_law("measurement_noise", measurement_noise, m, dtype)
     for law in (process_noise, measurement_noise):
         if law is not None:
             law.check_horizon(num_steps)

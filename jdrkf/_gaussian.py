@@ -13,6 +13,33 @@ from . import linalg
 from ._validation import as_float_array, check_covariance
 
 
+def quadratic_and_logdet(
+    chol: Float[Array, "n n"], resid: Float[ArrayLike, "... n"]
+) -> tuple[Float[Array, "..."], Float[Array, ""]]:
+    """`(rᵀ (L Lᵀ)⁻¹ r, log det(L Lᵀ) = 2 Σᵢ log Lᵢᵢ)` for residuals `r` of shape `(..., n)`
+    and a lower Cholesky factor `L`. All residuals enter one solve as right-hand sides (no
+    factorization or solve per residual, so nothing is batched per particle or sample)."""
+    resid = jnp.asarray(resid)
+    n = chol.shape[-1]
+    flat = resid.reshape(-1, n).T
+    quad = jnp.sum(flat * linalg.cho_solve(chol, flat), axis=0).reshape(resid.shape[:-1])
+    return quad, 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+
+
+def log_density(
+    chol: Float[Array, "n n"], resid: Float[ArrayLike, "... n"], dim: Float[ArrayLike, ""] | int | None = None
+) -> Float[Array, "..."]:
+    """`log N(r; 0, L Lᵀ) = −½ (rᵀ (L Lᵀ)⁻¹ r + log det(L Lᵀ) + d log 2π)`, batched over the
+    leading axes of `r` (the one Gaussian log-density of the package).
+
+    `d` is `dim`, by default `n`; filters with missing components decouple them (zero
+    residual, unit variance) and pass the number of observed components, which makes this
+    the marginal density of the observed ones."""
+    quad, logdet = quadratic_and_logdet(chol, resid)
+    d = chol.shape[-1] if dim is None else dim
+    return -0.5 * (quad + logdet + d * math.log(2 * math.pi))
+
+
 class Gaussian(eqx.Module):
     """`N(mean, cov)`, the distribution of a state or noise vector.
 
@@ -52,11 +79,7 @@ class Gaussian(eqx.Module):
 
     def log_prob(self, x: Float[ArrayLike, "... n"]) -> Float[Array, "..."]:
         """Log density at `x` (requires positive-definite `cov`)."""
-        chol = linalg.cholesky(linalg.symmetrize(self.cov))
-        diff = jnp.asarray(x) - self.mean
-        quad = jnp.sum(diff * jnp.vectorize(lambda d: linalg.cho_solve(chol, d), signature="(n)->(n)")(diff), axis=-1)
-        logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-        return -0.5 * (quad + logdet + self.dim * math.log(2 * math.pi))
+        return log_density(linalg.cholesky(linalg.symmetrize(self.cov)), jnp.asarray(x) - self.mean)
 
     def kl_divergence(self, other: "Gaussian") -> Float[Array, ""]:
         """`KL(self ‖ other)` in nats."""

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, Int
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._gaussian import Gaussian
 from ._validation import as_float_array, check_covariance, check_shape, check_time_axis, is_concrete
@@ -267,8 +270,114 @@ class LinearModel(eqx.Module):
             ),
         )
 
+    def to_cuthbert(
+        self,
+        prior: Gaussian,
+        ys: Float[ArrayLike, "T m"],
+        inputs: Float[ArrayLike, "T p"] | None = None,
+        observed: Bool[ArrayLike, "T m"] | None = None,
+    ):
+        r"""cuthbert's exact (square-root) Kalman filter for this model and its model inputs
+        (needs cuthbert: `pip install cuthbert`).
+
+        cuthbert indexes time as jdrkf does: `m0, chol_P0` describe `x_0`, and model input
+        `t` carries the transition `x_t → x_{t+1}` and the observation `y_{t+1} = ys[t]`,
+        so no shift is needed. Per step, from `model.at(t)`:
+        `p(x_{t+1} | x_t) = N(F x_t + c, L_Q L_Qᵀ)` with `c = B u_t + G μ_w` and `L_Q` the
+        triangularization of `G S_Q` (`S_Q S_Qᵀ = Q`), so `L_Q L_Qᵀ = G Q Gᵀ` even for a
+        singular `Q` or `q ≠ n`; `p(y | x) = N(H x + μ_v, S_R S_Rᵀ)`; `chol_P0` is the
+        factor of `prior.cov`. Entries that `observed` marks missing become NaN, cuthbert's
+        missing-data marker. `cuthbert.filter(kf, model_inputs, kf.init_prepare())` then
+        returns `T + 1` states, the first one `x_0`'s: drop it to get the filtered means,
+        covariances `chol_cov @ chol_covᵀ` and the cumulative log-likelihood of
+        `KalmanFilter()(model, prior, ys, inputs=inputs, observed=observed)`. With
+        `parallel=True` (cuthbert's associative scan) the log-likelihood needs `G Q Gᵀ`
+        nonsingular; the means and covariances do not.
+
+        **Arguments:**
+
+        - `prior`: the law of `x_0`.
+        - `ys`: `(T, m)` observations, `ys[t] = y_{t+1}`.
+        - `inputs`: `(T, p)` controls when the model has `B`; otherwise `None`.
+        - `observed`: boolean mask of the shape of `ys` (`None`: every entry is used).
+
+        **Returns:** `(kf, model_inputs)`: the `cuthbert.Filter` of
+        `cuthbert.gaussian.kalman.build_filter` and a dict of arrays with leading axis `T`.
+        """
+        try:
+            from cuthbert.gaussian import kalman
+        except ImportError as e:
+            raise ImportError("LinearModel.to_cuthbert needs cuthbert: pip install cuthbert") from e
+        from .linalg import psd_factor, tria
+
+        ys, inputs, observed = check_observations(self, prior, ys, inputs, observed)
+        if observed is not None:
+            ys = jnp.where(observed, ys, jnp.nan)
+        model_inputs = {"t": jnp.arange(ys.shape[0]), "y": ys}
+        if inputs is not None:
+            model_inputs["u"] = inputs
+
+        def dynamics(step):
+            mdl = self.at(step["t"])
+            c = mdl.G @ mdl.process_mean + (0.0 if mdl.B is None else mdl.B @ step["u"])
+            return mdl.F, c, tria(mdl.G @ psd_factor(mdl.Q))
+
+        def observation(step):
+            mdl = self.at(step["t"])
+            return mdl.H, mdl.noise_mean, psd_factor(mdl.R), step["y"]
+
+        kf = kalman.build_filter(prior.mean, psd_factor(prior.cov), dynamics, observation)
+        return kf, model_inputs
+
     def check_horizon(self, num_steps: int) -> None:
         """Eager check that a time-varying model covers `num_steps` steps."""
         t = self.num_steps
         if t is not None and t != num_steps:
             raise ValueError(f"the model is time-varying with {t} steps but {num_steps} steps were requested")
+
+
+def check_observations(
+    model: Any,
+    prior: Gaussian,
+    ys: Any,
+    inputs: Any,
+    observed: Any = None,
+    model_types: tuple[type, ...] = (LinearModel,),
+) -> tuple[Array, Array | None, Array | None]:
+    """Eager checks of a filter call; returns `ys`, `inputs` and `observed` as arrays.
+
+    `model` must be an instance of one of `model_types`; each must provide `state_dim`,
+    `obs_dim`, `check_horizon(T)` and `check_inputs(inputs, T)`. Concrete `ys` with a NaN
+    in an entry to be used raise here; traced ones get `RESULTS.nan_observation`.
+    """
+    if not isinstance(model, model_types):
+        names = " or ".join(f"jdrkf.{t.__name__}" for t in model_types)
+        raise ValueError(f"model must be a {names}, got {type(model).__name__}")
+    if not isinstance(prior, Gaussian):
+        raise ValueError(f"prior must be a jdrkf.Gaussian, got {type(prior).__name__}")
+    n, m = model.state_dim, model.obs_dim
+    if prior.mean.shape != (n,):
+        raise ValueError(f"prior has dimension {prior.mean.shape[-1]} but the state dimension is {n}")
+    ys = as_float_array("ys", ys, (2,))
+    if ys.shape[1] != m:
+        raise ValueError(f"ys has shape {tuple(ys.shape)} but expected (T, {m}) (H has {m} rows)")
+    model.check_horizon(ys.shape[0])
+    if inputs is not None:
+        inputs = as_float_array("inputs", inputs, (2,))
+    model.check_inputs(inputs, ys.shape[0])
+    if observed is not None:
+        observed = jnp.asarray(observed)
+        if observed.dtype != bool or observed.shape != ys.shape:
+            raise ValueError(
+                f"observed must be a boolean mask of the shape of ys, {tuple(ys.shape)} (True = use the entry), "
+                f"got {observed.dtype} of shape {tuple(observed.shape)}"
+            )
+    if is_concrete(ys) and (observed is None or is_concrete(observed)):
+        nan = np.isnan(np.asarray(ys))
+        if observed is not None:
+            nan &= np.asarray(observed)
+        if nan.any():
+            t, i = np.argwhere(nan)[0]
+            hint = "" if observed is not None else "; to treat NaN entries as missing, pass observed=~jnp.isnan(ys)"
+            raise ValueError(f"ys[{t}, {i}] is NaN{' but observed says to use it' if observed is not None else ''}{hint}")
+    return ys, inputs, observed

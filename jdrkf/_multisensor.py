@@ -15,7 +15,7 @@ from . import linalg
 from ._gaussian import Gaussian
 from ._models import LinearModel
 from ._noise import AbstractNoise
-from ._simulate import AbstractSelfSimulatingModel, Trajectories, _check_law
+from ._simulate import AbstractSelfSimulatingModel, Trajectories, check_law
 from ._validation import as_float_array, check_covariance, check_shape, is_concrete
 
 
@@ -263,7 +263,7 @@ def _simulate_multisensor(
     num_steps, num_runs = int(num_steps), int(num_runs)
     if num_steps < 1 or num_runs < 1:
         raise ValueError(f"num_steps and num_runs must be positive, got {num_steps} and {num_runs}")
-    prior = _check_law("prior", prior, model.state_dim, model.F.dtype)
+    prior = check_law("prior", prior, model.state_dim, model.F.dtype)
     return _simulate_ms(key, model, prior, num_steps, num_runs)
 
 

@@ -20,7 +20,8 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from . import linalg
-from ._validation import as_float_array, check_covariance, check_shape, is_concrete, psd_rtol
+from ._gaussian import log_density, quadratic_and_logdet
+from ._validation import as_float_array, check_covariance, check_fraction, check_shape, is_concrete, psd_rtol
 
 
 class AbstractNoise(eqx.Module):
@@ -84,23 +85,7 @@ def _cov_and_mean(cov, mean):
 
 def _mahalanobis_and_logdet(x, mean, cov):
     """`((x − mean)ᵀ cov⁻¹ (x − mean), log det cov)` for `x` of shape `(..., d)`."""
-    chol = linalg.cholesky(linalg.symmetrize(cov))
-    diff = jnp.asarray(x, cov.dtype) - mean
-    solve = jnp.vectorize(lambda d: linalg.cho_solve(chol, d), signature="(n)->(n)")
-    return jnp.sum(diff * solve(diff), axis=-1), 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-
-
-def _gaussian_log_density(x, mean, cov):
-    """`log N(x; mean, cov)` (positive-definite `cov`), batched over leading axes of `x`."""
-    quad, logdet = _mahalanobis_and_logdet(x, mean, cov)
-    return -0.5 * (quad + logdet + mean.shape[-1] * math.log(2 * math.pi))
-
-
-def _check_probability(name, p, upper=1.0):
-    p = as_float_array(name, p, (0,))
-    if is_concrete(p) and not (0.0 <= float(p) <= upper):
-        raise ValueError(f"{name} must lie in [0, {upper}], got {float(p)}")
-    return p
+    return quadratic_and_logdet(linalg.cholesky(linalg.symmetrize(cov)), jnp.asarray(x, cov.dtype) - mean)
 
 
 class _NominalGaussianNoise(AbstractNoise):
@@ -136,7 +121,7 @@ class GaussianNoise(_NominalGaussianNoise):
 
     def log_prob(self, x: Float[ArrayLike, "... d"], t: Int[ArrayLike, ""] = 0) -> Float[Array, "..."]:
         """Log density `log N(x; mean, cov)` (requires positive-definite `cov`)."""
-        return _gaussian_log_density(x, self._mean, self._cov)
+        return log_density(linalg.cholesky(linalg.symmetrize(self._cov)), jnp.asarray(x, self._cov.dtype) - self._mean)
 
 
 class MixtureNoise(_NominalGaussianNoise):
@@ -151,7 +136,7 @@ class MixtureNoise(_NominalGaussianNoise):
 
     def __init__(self, cov, p, scale, mean=None):
         self._cov, self._mean = _cov_and_mean(cov, mean)
-        self.p = _check_probability("p", p).astype(self._cov.dtype)
+        self.p = check_fraction("p", p).astype(self._cov.dtype)
         scale = as_float_array("scale", scale, (0,))
         if is_concrete(scale) and float(scale) < 1.0:
             raise ValueError(f"scale must be >= 1 (the outlier component is N(0, scale * cov)), got {float(scale)}")
@@ -185,7 +170,7 @@ class OutlierNoise(_NominalGaussianNoise):
 
     def __init__(self, cov, p, magnitude, mean=None):
         self._cov, self._mean = _cov_and_mean(cov, mean)
-        self.p = _check_probability("p", p).astype(self._cov.dtype)
+        self.p = check_fraction("p", p).astype(self._cov.dtype)
         self.magnitude = as_float_array("magnitude", magnitude, (0,)).astype(self._cov.dtype)
 
     @property

@@ -12,10 +12,10 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from . import linalg
-from ._gaussian import Gaussian
+from ._gaussian import Gaussian, log_density
 from ._noise import AbstractNoise
-from ._simulate import AbstractSelfSimulatingModel, Trajectories, _check_law
-from ._validation import as_float_array, check_covariance
+from ._simulate import AbstractSelfSimulatingModel, Trajectories, check_law
+from ._validation import as_float_array, check_covariance, check_positive_int
 
 
 def _time_struct():
@@ -44,10 +44,7 @@ def _gaussian_logpdf(resid: Float[Array, " m"], cov: Float[Array, "m m"]) -> Flo
     obs_f = observed.astype(resid.dtype)
     cov = cov * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
     resid = jnp.where(observed, resid, 0.0)
-    chol = linalg.cholesky(linalg.symmetrize(cov))
-    quad = resid @ linalg.cho_solve(chol, resid)
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    return -0.5 * (quad + logdet + jnp.sum(obs_f) * math.log(2 * math.pi))
+    return log_density(linalg.cholesky(linalg.symmetrize(cov)), resid, jnp.sum(obs_f))
 
 
 class NonlinearModel(AbstractSelfSimulatingModel):
@@ -111,8 +108,8 @@ class NonlinearModel(AbstractSelfSimulatingModel):
         q, r = Q.shape[0], R.shape[0]
         additive = bool(additive)
         for name, value in (("state_dim", state_dim), ("obs_dim", obs_dim)):
-            if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
+            if value is not None:
+                check_positive_int(name, value)
         if additive:
             if state_dim is not None and state_dim != q:
                 raise ValueError(f"state_dim={state_dim} but Q has shape {tuple(Q.shape)}; with additive noise Q must be (n, n)")
@@ -134,8 +131,8 @@ class NonlinearModel(AbstractSelfSimulatingModel):
             _check_callable_output("f", f, (x, w, t), "(x, w, t)", (n,), dtype)
             _check_callable_output("h", h, (x, v, t), "(x, v, t)", (m,), dtype)
         self.f, self.h, self.Q, self.R = f, h, Q, R
-        self.process_noise = _check_law("process_noise", process_noise, q, dtype)
-        self.measurement_noise = _check_law("measurement_noise", measurement_noise, r, dtype)
+        self.process_noise = check_law("process_noise", process_noise, q, dtype)
+        self.measurement_noise = check_law("measurement_noise", measurement_noise, r, dtype)
         self.additive, self.state_dim, self.obs_dim = additive, n, m
 
     @property
@@ -252,7 +249,7 @@ def _simulate_nonlinear(
     if num_steps < 1 or num_runs < 1:
         raise ValueError(f"num_steps and num_runs must be positive, got {num_steps} and {num_runs}")
     model.check_horizon(num_steps)
-    prior = _check_law("prior", prior, model.state_dim, model.dtype)
+    prior = check_law("prior", prior, model.state_dim, model.dtype)
     return _simulate_jit(key, model, prior, num_steps, num_runs)
 
 

@@ -55,7 +55,7 @@ class AbstractSelfSimulatingModel(eqx.Module):
         """`num_runs` independent runs of `num_steps` steps from `x_0 ~ prior`."""
 
 
-def _check_law(name: str, law, dim: int, dtype) -> AbstractNoise | None:
+def check_law(name: str, law, dim: int, dtype) -> AbstractNoise | None:
     if law is None:
         return None
     if isinstance(law, Gaussian):
@@ -130,9 +130,9 @@ def simulate(
     model.check_inputs(inputs, num_steps)
     n, m, q = model.state_dim, model.obs_dim, model.Q.shape[-1]
     dtype = model.F.dtype
-    prior = _check_law("prior", prior, n, dtype)
-    process_noise = _check_law("process_noise", process_noise, q, dtype)
-    measurement_noise = _check_law("measurement_noise", measurement_noise, m, dtype)
+    prior = check_law("prior", prior, n, dtype)
+    process_noise = check_law("process_noise", process_noise, q, dtype)
+    measurement_noise = check_law("measurement_noise", measurement_noise, m, dtype)
     for law in (process_noise, measurement_noise):
         if law is not None:
             law.check_horizon(num_steps)

@@ -12,6 +12,7 @@ import operator
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 
 def as_float_array(name: str, x, ndim: tuple[int, ...]):
@@ -121,3 +122,52 @@ def check_time_axis(name: str, x, base_ndim: int, num_steps: int | None) -> int 
             )
         return t
     return num_steps
+
+
+def check_positive_int(name: str, value, hint: str = "") -> int:
+    """`value` as a Python `int`, checked to be an integer (Python or NumPy; not `bool`)
+    `>= 1`; `hint` follows the expectation in the message."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be a positive int{hint}, got {value!r}")
+    return int(value)
+
+
+def check_scalar(name: str, x: Float[ArrayLike, ""], lower: float = 0.0) -> Float[Array, ""]:
+    """A scalar hyper-parameter `>= lower` as a float array (checked when concrete)."""
+    x = as_float_array(name, x, (0,))
+    if is_concrete(x):
+        v = float(np.asarray(x))
+        if not np.isfinite(v) or v < lower:
+            raise ValueError(f"{name} must be a finite number >= {lower:g}, got {v:g}")
+    return x
+
+
+def check_fraction(name: str, x: Float[ArrayLike, ""], upper: float = 1.0, *, closed: bool = True, hint: str = "") -> Float[Array, ""]:
+    """A scalar in `[0, upper]` (`[0, upper)` with `closed=False`) as a float array, checked
+    when concrete; the comparison is made in the precision of `x`."""
+    x = as_float_array(name, x, (0,))
+    if is_concrete(x):
+        value, top = float(x), float(np.asarray(upper, x.dtype))
+        if not (0.0 <= value <= top if closed else 0.0 <= value < top):
+            raise ValueError(f"{name} must lie in [0, {upper}{']' if closed else ')'}, got {value}{hint}")
+    return x
+
+
+def in_range(
+    x: Float[ArrayLike, "*d"],
+    lower: float,
+    upper: float = np.inf,
+    *,
+    lower_open: bool = False,
+    upper_open: bool = False,
+    allow_inf: bool = False,
+) -> Bool[Array, ""]:
+    """Traced range check of a hyper-parameter (the run-time counterpart of the eager
+    checks): every entry of `x` lies in the interval from `lower` to `upper` (open or
+    closed ends) and is finite (`+inf` too with `allow_inf`); `False` for NaN. A few
+    scalar comparisons, unbatched under `vmap` over data."""
+    x = jnp.asarray(x)
+    above = x > lower if lower_open else x >= lower
+    below = x < upper if upper_open else x <= upper
+    finite = (x == jnp.inf) | jnp.isfinite(x) if allow_inf else jnp.isfinite(x)
+    return jnp.all(above & below & finite)

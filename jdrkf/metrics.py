@@ -58,7 +58,7 @@ def nees(
     return jnp.sum(err * solve(jnp.asarray(covariances), err), axis=-1)
 
 
-def _t_quantile(p: float, dof: int) -> float:
+def t_quantile(p: float, dof: int) -> float:
     """Quantile of Student's t by bisection on its CDF (regularized incomplete beta)."""
     if dof > 1e6:
         return math.sqrt(2.0) * float(jax.scipy.special.erfinv(2.0 * p - 1.0))
@@ -104,7 +104,7 @@ def mean_ci(values: ArrayLike, level: float = 0.95, *, scale: str = "linear") ->
     mean = float(v.mean())
     if v.size == 1:
         return mean, (float("nan"), float("nan"))
-    half = _t_quantile(0.5 + level / 2.0, v.size - 1) * float(v.std(ddof=1)) / math.sqrt(v.size)
+    half = t_quantile(0.5 + level / 2.0, v.size - 1) * float(v.std(ddof=1)) / math.sqrt(v.size)
     if scale == "log":
         return mean, (mean * math.exp(-half / mean), mean * math.exp(half / mean))
     return mean, (mean - half, mean + half)

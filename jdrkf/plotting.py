@@ -47,13 +47,13 @@ def mean_band(values: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.n
     interval for it, built on the log scale, `m exp(±t se/m)`, where every value is
     positive (as `metrics.mean_ci(..., scale="log")` does) and `m ± t se` elsewhere.
     With one run the interval is the mean itself."""
-    from .metrics import _t_quantile
+    from .metrics import t_quantile
 
     v = np.asarray(values, dtype=np.float64)
     mean = v.mean(axis=0)
     if v.shape[0] < 2:
         return mean, mean, mean
-    half = _t_quantile(0.5 + level / 2.0, v.shape[0] - 1) * v.std(axis=0, ddof=1) / np.sqrt(v.shape[0])
+    half = t_quantile(0.5 + level / 2.0, v.shape[0] - 1) * v.std(axis=0, ddof=1) / np.sqrt(v.shape[0])
     positive = np.all(v > 0, axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.exp(half / mean)

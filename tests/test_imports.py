@@ -134,3 +134,74 @@ def test_deferred_imports_close_no_cycle():
         assert b in graph[a], f"{a} no longer imports {b}: drop it from DEFERRED_ALLOWED"
         graph[a].discard(b)
     assert find_cycle(graph) is None
+
+
+def _is_private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _base_module(node: ast.ImportFrom, name: str, is_pkg: bool) -> str:
+    """The absolute module that `from ... import` reads from, inside module `name`."""
+    if not node.level:
+        return node.module or ""
+    base = name.split(".") if is_pkg else name.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def private_uses(name: str, is_pkg: bool, tree: ast.Module, modules) -> list[str]:
+    """Single-underscore names that module `name` takes from another `jdrkf` module:
+    `from .x import _y` (unless `_y` is a submodule) and `m._y` on a name `m` bound to an
+    imported `jdrkf` module (unless `m._y` is a submodule)."""
+    found, module_aliases = [], {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = _base_module(node, name, is_pkg)
+            if base != PACKAGE and not base.startswith(PACKAGE + "."):
+                continue
+            for alias in node.names:
+                target = f"{base}.{alias.name}"
+                if target in modules:
+                    module_aliases[alias.asname or alias.name] = target
+                elif _is_private(alias.name) and base != name:
+                    found.append(f"{name}:{node.lineno} from {base} import {alias.name}")
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name in modules:
+                    module_aliases[alias.asname or alias.name] = alias.name if alias.asname else alias.name.split(".")[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in module_aliases:
+            target = module_aliases[node.value.id]
+            if _is_private(node.attr) and f"{target}.{node.attr}" not in modules and target != name:
+                found.append(f"{name}:{node.lineno} {node.value.id}.{node.attr} ({target})")
+    return found
+
+
+def test_private_use_finder_finds_private_uses():
+    modules = {"jdrkf", "jdrkf.a", "jdrkf.a._b", "jdrkf.c", "jdrkf._d"}
+    src = (
+        "from ._b import _hidden, visible\n"  # private name from a sibling module: found
+        "from . import _b\n"  # a private submodule: fine
+        "from .. import _d\n"
+        "from .._d import _e as e\n"  # found (aliasing does not hide it)
+        "import numpy as np\n"
+        "x = _b._inner + _b.public + _d._f + np._private + self._g\n"  # `_b._inner`, `_d._f` found
+    )
+    found = private_uses("jdrkf.a", True, ast.parse(src), modules)
+    assert sorted(f.split(" ", 1)[1] for f in found) == sorted([
+        "from jdrkf.a._b import _hidden",
+        "from jdrkf._d import _e",
+        "_b._inner (jdrkf.a._b)",
+        "_d._f (jdrkf._d)",
+    ])
+    assert private_uses("jdrkf.c", False, ast.parse("from . import _d\nfrom .a import visible\ny = _d.g"), modules) == []
+
+
+def test_no_private_names_across_modules():
+    """Modules share internal pieces under names without a leading underscore (in private
+    modules such as `jdrkf.filters._steps`); a single-underscore name stays in its module."""
+    modules = _modules()
+    found = []
+    for name, (path, is_pkg) in modules.items():
+        found += private_uses(name, is_pkg, ast.parse(path.read_text(encoding="utf-8")), modules)
+    assert not found, "private names used across modules:\n" + "\n".join(found)

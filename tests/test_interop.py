@@ -1,4 +1,5 @@
-"""`LinearModel.from_dynamax` / `.to_dynamax` against dynamax's own Kalman filter.
+"""`LinearModel.from_dynamax` / `.to_dynamax` against dynamax's own Kalman filter, and
+`LinearModel.to_cuthbert` against cuthbert's (at the end of the file).
 
 dynamax (the `bench` extra) conditions its first state on `emissions[0]`; jdrkf predicts
 `x_1` from the prior of `x_0` first. The oracle is `dynamax.linear_gaussian_ssm.lgssm_filter`
@@ -12,6 +13,7 @@ log-likelihood (to 1e-10, float64) check the time shift of both conversions. dyn
 import sys
 import warnings
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -77,21 +79,8 @@ def test_from_dynamax_filters_like_lgssm_filter(rng, exact_dynamax, time_varying
 
 @pytest.mark.parametrize("time_varying", [False, True])
 def test_to_dynamax_filters_like_kalman_filter(rng, exact_dynamax, time_varying):
-    q = 2  # noise input G (n x q), process and measurement noise means, controls
-    tv = (T,) if time_varying else ()
-    model = jdrkf.LinearModel(
-        F=0.6 * rng.standard_normal(tv + (N, N)),
-        H=rng.standard_normal((M, N)),
-        Q=_spd(rng, q, tv),
-        R=_spd(rng, M),
-        G=rng.standard_normal((N, q)),
-        B=rng.standard_normal(tv + (N, P)),
-        process_mean=rng.standard_normal(q),
-        noise_mean=rng.standard_normal(tv + (M,)),
-    )
-    prior = jdrkf.Gaussian(rng.standard_normal(N), _spd(rng, N))
-    ys = jnp.asarray(rng.standard_normal((T, M)))
-    us = jnp.asarray(rng.standard_normal((T, P)))
+    # noise input G (n x q), process and measurement noise means, controls
+    model, prior, ys, us = _random_case(rng, time_varying, q=2, varying_h=False)
     params = model.to_dynamax(prior, us)
     _assert_same_filter(jdrkf.KalmanFilter()(model, prior, ys, inputs=us), lgssm_filter(params, ys, us))
     # the initial law of dynamax is the prediction of x_1, written out here
@@ -163,3 +152,79 @@ def test_to_dynamax_needs_the_first_input_and_says_so_without_dynamax(rng, monke
     monkeypatch.setitem(sys.modules, "dynamax.linear_gaussian_ssm", None)  # import fails as if not installed
     with pytest.raises(ImportError, match=r"pip install 'jdrkf\[bench\]'"):
         model.to_dynamax(prior, jnp.zeros((T, P)))
+
+
+# cuthbert (the `bench` extra): `LinearModel.to_cuthbert` against cuthbert's own square-root
+# Kalman filter, which shares jdrkf's time index (its first state is the law of x_0).
+
+
+def _random_case(rng, time_varying, q, varying_h=True):
+    """A random model with every optional field (time-varying ones with `time_varying`),
+    a prior, observations and inputs."""
+    tv = (T,) if time_varying else ()
+    model = jdrkf.LinearModel(
+        F=0.6 * rng.standard_normal(tv + (N, N)),
+        H=rng.standard_normal((tv if varying_h else ()) + (M, N)),
+        Q=_spd(rng, q, tv),
+        R=_spd(rng, M),
+        G=rng.standard_normal((N, q)),
+        B=rng.standard_normal(tv + (N, P)),
+        process_mean=rng.standard_normal(q),
+        noise_mean=rng.standard_normal(tv + (M,)),
+    )
+    prior = jdrkf.Gaussian(rng.standard_normal(N), _spd(rng, N))
+    return model, prior, jnp.asarray(rng.standard_normal((T, M))), jnp.asarray(rng.standard_normal((T, P)))
+
+
+def _assert_same_as_cuthbert(res, states, tol=1e-10):
+    """cuthbert's `T + 1` states start with x_0's; jdrkf's `T` start with x_1's."""
+    chol = np.asarray(states.chol_cov[1:])
+    np.testing.assert_allclose(res.filtered_means, states.mean[1:], rtol=0, atol=tol)
+    np.testing.assert_allclose(res.filtered_covariances, chol @ np.swapaxes(chol, -1, -2), rtol=0, atol=tol)
+    np.testing.assert_allclose(res.marginal_loglik, states.log_normalizing_constant[-1], rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("time_varying", [False, True])
+@pytest.mark.parametrize("missing", [False, True])
+def test_to_cuthbert_filters_like_kalman_filter(rng, time_varying, missing):
+    cuthbert = pytest.importorskip("cuthbert")
+    model, prior, ys, us = _random_case(rng, time_varying, q=N + 1)  # G Q Gᵀ nonsingular
+    observed = jnp.asarray(rng.random((T, M)) > 0.3).at[3].set(False) if missing else None  # step 4: nothing
+    res = jdrkf.KalmanFilter()(model, prior, ys, inputs=us, observed=observed)
+    kf, model_inputs = model.to_cuthbert(prior, ys, us, observed)
+    for parallel in (False, True):  # the associative-scan form gives the same filter
+        _assert_same_as_cuthbert(res, cuthbert.filter(kf, model_inputs, kf.init_prepare(), parallel=parallel))
+    if missing:  # a missing entry's value is ignored by both
+        ys_other = jnp.where(observed, ys, 1e3)
+        kf, model_inputs = model.to_cuthbert(prior, ys_other, us, observed)
+        _assert_same_as_cuthbert(res, cuthbert.filter(kf, model_inputs, kf.init_prepare()))
+
+
+def test_to_cuthbert_with_singular_process_noise(rng):
+    """`G` with fewer columns than states (`G Q Gᵀ` singular) and no inputs: cuthbert's
+    sequential filter gets an `n × n` factor of `G Q Gᵀ`. (Its associative form solves with
+    a process-noise factor in the log-likelihood, so it needs `G Q Gᵀ` nonsingular.)"""
+    cuthbert = pytest.importorskip("cuthbert")
+    model, prior, ys, _ = _random_case(rng, time_varying=True, q=1)
+    model = eqx.tree_at(lambda m: m.B, model, None, is_leaf=lambda x: x is None)
+    kf, model_inputs = model.to_cuthbert(prior, ys)
+    assert set(model_inputs) == {"t", "y"}
+    _assert_same_as_cuthbert(jdrkf.KalmanFilter()(model, prior, ys), cuthbert.filter(kf, model_inputs, kf.init_prepare()))
+
+
+def test_to_cuthbert_checks_its_arguments_and_says_what_to_install(rng, monkeypatch):
+    pytest.importorskip("cuthbert")
+    model, prior, ys, us = _random_case(rng, time_varying=True, q=N)
+    with pytest.raises(ValueError, match="no inputs were given"):
+        model.to_cuthbert(prior, ys)
+    with pytest.raises(ValueError, match=r"time-varying with 12 steps but 5 steps"):
+        model.to_cuthbert(prior, ys[:5], us[:5])
+    with pytest.raises(ValueError, match="ys has shape"):
+        model.to_cuthbert(prior, ys[:, :1], us)
+    with pytest.raises(ValueError, match="observed must be a boolean mask"):
+        model.to_cuthbert(prior, ys, us, observed=jnp.ones(T))
+    with pytest.raises(ValueError, match=r"ys\[2, 1\] is NaN"):
+        model.to_cuthbert(prior, ys.at[2, 1].set(jnp.nan), us)
+    monkeypatch.setitem(sys.modules, "cuthbert.gaussian", None)  # import fails as if not installed
+    with pytest.raises(ImportError, match="pip install cuthbert"):
+        model.to_cuthbert(prior, ys, us)

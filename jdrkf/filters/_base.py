@@ -10,13 +10,11 @@ from typing import Any, ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray, PyTree
 
 from .._gaussian import Gaussian
-from .._models import LinearModel
-from .._validation import as_float_array, is_concrete
+from .._models import LinearModel, check_observations
 
 
 class RESULTS(eqx.Enumeration):
@@ -146,53 +144,6 @@ class FilterResult(eqx.Module):
     result: RESULTS
 
 
-def check_observations(
-    model: Any,
-    prior: Gaussian,
-    ys: Any,
-    inputs: Any,
-    observed: Any = None,
-    model_types: tuple[type, ...] = (LinearModel,),
-) -> tuple[Array, Array | None, Array | None]:
-    """Eager checks of a filter call; returns `ys`, `inputs` and `observed` as arrays.
-
-    `model` must be an instance of one of `model_types`; each must provide `state_dim`,
-    `obs_dim`, `check_horizon(T)` and `check_inputs(inputs, T)`. Concrete `ys` with a NaN
-    in an entry to be used raise here; traced ones get `RESULTS.nan_observation`.
-    """
-    if not isinstance(model, model_types):
-        names = " or ".join(f"jdrkf.{t.__name__}" for t in model_types)
-        raise ValueError(f"model must be a {names}, got {type(model).__name__}")
-    if not isinstance(prior, Gaussian):
-        raise ValueError(f"prior must be a jdrkf.Gaussian, got {type(prior).__name__}")
-    n, m = model.state_dim, model.obs_dim
-    if prior.mean.shape != (n,):
-        raise ValueError(f"prior has dimension {prior.mean.shape[-1]} but the state dimension is {n}")
-    ys = as_float_array("ys", ys, (2,))
-    if ys.shape[1] != m:
-        raise ValueError(f"ys has shape {tuple(ys.shape)} but expected (T, {m}) (H has {m} rows)")
-    model.check_horizon(ys.shape[0])
-    if inputs is not None:
-        inputs = as_float_array("inputs", inputs, (2,))
-    model.check_inputs(inputs, ys.shape[0])
-    if observed is not None:
-        observed = jnp.asarray(observed)
-        if observed.dtype != bool or observed.shape != ys.shape:
-            raise ValueError(
-                f"observed must be a boolean mask of the shape of ys, {tuple(ys.shape)} (True = use the entry), "
-                f"got {observed.dtype} of shape {tuple(observed.shape)}"
-            )
-    if is_concrete(ys) and (observed is None or is_concrete(observed)):
-        nan = np.isnan(np.asarray(ys))
-        if observed is not None:
-            nan &= np.asarray(observed)
-        if nan.any():
-            t, i = np.argwhere(nan)[0]
-            hint = "" if observed is not None else "; to treat NaN entries as missing, pass observed=~jnp.isnan(ys)"
-            raise ValueError(f"ys[{t}, {i}] is NaN{' but observed says to use it' if observed is not None else ''}{hint}")
-    return ys, inputs, observed
-
-
 class AbstractFilter(eqx.Module):
     """Base class of all filters.
 
@@ -200,7 +151,7 @@ class AbstractFilter(eqx.Module):
     `eqx.filter_grad` differentiates through them) and implement `init` and `step`.
     `__call__` scans `step` over the observations with `lax.scan`.
 
-    `throw` (static): if `True`, a failed run raises through `eqx.error_if` (under
+    `throw` (static, keyword, default `True`): if `True`, a failed run raises through `eqx.error_if` (under
     `vmap`: if any run fails). Set `throw=False` for Monte Carlo sweeps and inspect
     `FilterResult.result` instead.
 
@@ -223,7 +174,7 @@ class AbstractFilter(eqx.Module):
     variable): `step` honours `observed`.
     """
 
-    throw: eqx.AbstractVar[bool]
+    throw: bool = eqx.field(default=True, static=True, kw_only=True)
     outputs: tuple[str, ...] = eqx.field(default=DEFAULT_OUTPUTS, static=True, kw_only=True, converter=_as_outputs)
     model_types: ClassVar[tuple[type, ...]] = (LinearModel,)
     stochastic_init: ClassVar[bool] = False

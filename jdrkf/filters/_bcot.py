@@ -64,13 +64,12 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
+from .._gaussian import Gaussian, log_density
 from .._root import implicit_root, newton
-from .._validation import as_float_array, check_covariance
-from ..sets._base import in_range
-from ..sets._base import radius as _radius
+from .._validation import as_float_array, check_covariance, check_positive_int, check_scalar, in_range
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
-from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
+from ._kalman import predict
+from ._steps import measurement, step_result
 
 _LINE_SEARCH_MAX = 60
 
@@ -341,9 +340,8 @@ def bcot_worst_case(
         raise ValueError(f"A has shape {tuple(A.shape)} but expected ({n}, {n}) (prior_cov is {n}×{n})")
     if C.shape != (m, n):
         raise ValueError(f"C has shape {tuple(C.shape)} but expected ({m}, {n}) (noise_cov is {m}×{m}, prior_cov {n}×{n})")
-    if not isinstance(max_iter, int) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive int, got {max_iter!r}")
-    radius = _radius("radius", radius)
+    max_iter = check_positive_int("max_iter", max_iter)
+    radius = check_scalar("radius", radius)
     dtype = jnp.result_type(prior_cov, process_cov, noise_cov, A, C)
     args = (x.astype(dtype) for x in (prior_cov, process_cov, noise_cov, A, C, radius))
     # `max_iter` is passed as an array so that changing it does not recompile.
@@ -394,14 +392,11 @@ class BCOTKF(AbstractFilter):
 
     radius: Float[Array, ""]
     max_iter: int = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, radius: Float[ArrayLike, ""], *, max_iter: int = 100, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
-        self.radius = _radius("radius", radius)
-        if not isinstance(max_iter, int) or max_iter < 1:
-            raise ValueError(f"max_iter must be a positive int, got {max_iter!r}")
-        self.max_iter, self.throw, self.outputs = max_iter, throw, outputs
+        self.radius = check_scalar("radius", radius)
+        self.max_iter, self.throw, self.outputs = check_positive_int("max_iter", max_iter), throw, outputs
 
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
@@ -409,7 +404,7 @@ class BCOTKF(AbstractFilter):
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         mdl = model.at(t)
         pred = predict(model, state, t, u)
-        observed, h, r, resid = _measurement(model, y, t, observed)
+        observed, h, r, resid = measurement(model, y, t, observed)
         num_obs = jnp.sum(observed.astype(resid.dtype))
         dtype = pred.cov.dtype
         qp = linalg.symmetrize(mdl.G @ mdl.Q @ mdl.G.T)
@@ -421,7 +416,7 @@ class BCOTKF(AbstractFilter):
         innov = resid - h @ pred.mean
         e = jnp.eye(p.shape[0], dtype=dtype) - gain @ h
         filt = Gaussian(pred.mean + gain @ innov, linalg.symmetrize(e @ p @ e.T + gain @ sol.noise_cov @ gain.T))
-        res = _step_result(failed, filt)
+        res = step_result(failed, filt)
         res = RESULTS.where((res == RESULTS.successful) & ~sol.converged, RESULTS.solver_not_converged, res)
         res = RESULTS.where(in_range(self.radius, 0.0), res, RESULTS.invalid_hyperparameter)
         info = {
@@ -437,7 +432,7 @@ class BCOTKF(AbstractFilter):
         out = StepOutput(
             predicted=Gaussian(pred.mean, p),
             filtered=filt,
-            loglik=_gaussian_loglik(chol, innov, num_obs),
+            loglik=log_density(chol, innov, num_obs),
             info=info,
             result=res,
         )

@@ -21,10 +21,10 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._root import bracketed_newton
-from .._validation import as_float_array, is_concrete
-from ..sets._base import in_range
+from .._validation import as_float_array, in_range, is_concrete
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
-from ._kalman import _step_result, predict, update
+from ._kalman import predict, update
+from ._steps import step_result
 
 
 
@@ -287,7 +287,6 @@ class TauKF(AbstractFilter):
 
     tau: Float[Array, ""]
     c: Float[Array, ""]
-    throw: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, tau: Float[ArrayLike, ""], c: Float[ArrayLike, ""], throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
@@ -306,7 +305,7 @@ class TauKF(AbstractFilter):
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
         info = {"theta": theta, "nominal_predicted_cov": nominal.cov}
         valid = in_range(self.tau, 0.0, 1.0) & in_range(self.c, 0.0)
-        result = RESULTS.where(valid, _step_result(failed, filt), RESULTS.invalid_hyperparameter)
+        result = RESULTS.where(valid, step_result(failed, filt), RESULTS.invalid_hyperparameter)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return filt, out
 
@@ -345,7 +344,6 @@ class RiskSensitiveKF(AbstractFilter):
     """
 
     theta: Float[Array, ""]
-    throw: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, theta: Float[ArrayLike, ""], throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
@@ -366,7 +364,7 @@ class RiskSensitiveKF(AbstractFilter):
         p_tilde = jnp.where(valid, p_tilde, jnp.nan)
         pred = _with_cov(nominal, p_tilde)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
-        result = RESULTS.where(valid, _step_result(failed, filt), RESULTS.risk_sensitive_breakdown)
+        result = RESULTS.where(valid, step_result(failed, filt), RESULTS.risk_sensitive_breakdown)
         result = RESULTS.where(in_range(self.theta, 0.0), result, RESULTS.invalid_hyperparameter)
         info = {"valid": valid, "nominal_predicted_cov": p}
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)

@@ -12,20 +12,22 @@ from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
-from ..sets._base import AbstractAmbiguitySet, radius
+from .._gaussian import Gaussian, log_density
+from .._validation import check_scalar
+from ..sets._base import AbstractAmbiguitySet
 from ..sets._outliers import AbstractOutlierModel, EpsContamination
 from ..sets._solve import worst_case, worst_case_joint
 from ..sets._wasserstein import Wasserstein
 from . import _sqrt
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
-from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
+from ._kalman import predict
+from ._steps import measurement, step_result
 
 
 def _result(failed, sol, filt, parts):
     """Step code; an out-of-range traced hyper-parameter of any of `parts` (sets, outlier
     model; `None` skipped) takes precedence over the failures it causes."""
-    res = _step_result(failed, filt)
+    res = step_result(failed, filt)
     res = RESULTS.where((res == RESULTS.successful) & ~sol.converged, RESULTS.solver_not_converged, res)
     for part in parts:
         if part is not None:
@@ -33,11 +35,11 @@ def _result(failed, sol, filt, parts):
     return res
 
 
-def _decoupled_step(flt, model, state, y, t, u, observed, state_set, noise_set, outliers):
+def decoupled_step(flt, model, state, y, t, u, observed, state_set, noise_set, outliers):
     """Algorithm 1 / Theorem 9: nominal prediction (eqs. 46–47), worst-case covariances
     (eq. 34 or 36), robust update (eqs. 48–49)."""
     pred = predict(model, state, t, u)
-    observed, h, r, resid = _measurement(model, y, t, observed)
+    observed, h, r, resid = measurement(model, y, t, observed)
     num_obs = jnp.sum(observed.astype(resid.dtype))
     dtype = pred.cov.dtype
     i_min = jnp.ones((), dtype) if outliers is None else outliers.i_min().astype(dtype)
@@ -61,7 +63,7 @@ def _decoupled_step(flt, model, state, y, t, u, observed, state_set, noise_set, 
     out = StepOutput(
         predicted=Gaussian(pred.mean, sx),
         filtered=filt,
-        loglik=_gaussian_loglik(chol, innov, num_obs),
+        loglik=log_density(chol, innov, num_obs),
         info=info,
         result=_result(failed, sol, filt, (state_set, noise_set, outliers)),
     )
@@ -72,7 +74,7 @@ def _joint_step(flt, model, state, y, t, u, observed, joint_set):
     """Theorem 8: one ambiguity set on the covariance of `(x_k, y_k)`; the estimate is
     the conditional mean under the worst-case joint Gaussian."""
     pred = predict(model, state, t, u)
-    observed, h, r, resid = _measurement(model, y, t, observed)
+    observed, h, r, resid = measurement(model, y, t, observed)
     num_obs = jnp.sum(observed.astype(resid.dtype))
     n = pred.cov.shape[0]
     cross = pred.cov @ h.T
@@ -88,7 +90,7 @@ def _joint_step(flt, model, state, y, t, u, observed, joint_set):
     out = StepOutput(
         predicted=Gaussian(pred.mean, sxx),
         filtered=filt,
-        loglik=_gaussian_loglik(chol, innov, num_obs),
+        loglik=log_density(chol, innov, num_obs),
         info=info,
         result=_result(failed, sol, filt, (joint_set,)),
     )
@@ -96,14 +98,14 @@ def _joint_step(flt, model, state, y, t, u, observed, joint_set):
 
 
 def _decoupled_step_sqrt(flt, model, state, y, t, u, observed, state_set, noise_set, outliers):
-    """`_decoupled_step` in square-root form (state `(x̂, S)`, `P = S Sᵀ`): nominal
+    """`decoupled_step` in square-root form (state `(x̂, S)`, `P = S Sᵀ`): nominal
     prediction `S⁻ = tria([F S, G S_Q])`, the worst-case covariances as factors
     (`√θ₂ S⁻` for moment sets, else the Cholesky factor of the solver's matrix), the
     array-form update `tria([[S_v*, H S_x*], [0, S_x*]]) = [[L, 0], [L_k, L_p]]`, the mean
     `x̂⁻ + L_k ψ(L⁻¹ s)` (eq. 48; `L_k = Σx*HᵀL⁻ᵀ`) and the factor
     `tria([√(1 − i) S_x*, √i L_p])` of eq. 49's `(1 − i) Σx* + i L_p L_pᵀ`."""
     mean_pred, chol_pred = _sqrt.predict_sqrt(model, *state, t, u)
-    observed, h, r, resid = _measurement(model, y, t, observed)
+    observed, h, r, resid = measurement(model, y, t, observed)
     num_obs = jnp.sum(observed.astype(resid.dtype))
     nominal = _sqrt.outer(chol_pred)
     dtype = nominal.dtype
@@ -124,7 +126,7 @@ def _decoupled_step_sqrt(flt, model, state, y, t, u, observed, state_set, noise_
     out = StepOutput(
         predicted=Gaussian(mean_pred, sol.state_cov),
         filtered=filt,
-        loglik=_gaussian_loglik(chol_s, innov, num_obs),
+        loglik=log_density(chol_s, innov, num_obs),
         info=info,
         result=_result(failed, sol, filt, (state_set, noise_set, outliers)),
     )
@@ -138,7 +140,7 @@ def _joint_step_sqrt(flt, model, state, y, t, u, observed, joint_set):
     matrix), so the conditional mean is `x̂⁻ + L_k L⁻¹ s` and `L_p` is the factor of the
     Schur complement `S_xx − S_xy S_yy⁻¹ S_yx`."""
     mean_pred, chol_pred = _sqrt.predict_sqrt(model, *state, t, u)
-    observed, h, r, resid = _measurement(model, y, t, observed)
+    observed, h, r, resid = measurement(model, y, t, observed)
     num_obs = jnp.sum(observed.astype(resid.dtype))
     n, m = chol_pred.shape[0], h.shape[0]
     pred_cov = _sqrt.outer(chol_pred)
@@ -156,7 +158,7 @@ def _joint_step_sqrt(flt, model, state, y, t, u, observed, joint_set):
     out = StepOutput(
         predicted=Gaussian(mean_pred, sol.cov[:n, :n]),
         filtered=filt,
-        loglik=_gaussian_loglik(chol_s, innov, num_obs),
+        loglik=log_density(chol_s, innov, num_obs),
         info=info,
         result=_result(failed, sol, filt, (joint_set,)),
     )
@@ -225,7 +227,6 @@ class DRKF(AbstractFilter):
     joint_set: AbstractAmbiguitySet | None = None
     rtol: float | None = eqx.field(default=None, static=True)
     max_iter: int = eqx.field(default=500, static=True)
-    throw: bool = eqx.field(default=True, static=True, kw_only=True)  # declared first by AbstractFilter
     square_root: bool = eqx.field(default=False, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
 
@@ -245,8 +246,8 @@ class DRKF(AbstractFilter):
         if self.joint_set is not None:
             joint_step = _joint_step_sqrt if self.square_root else _joint_step
             return joint_step(self, model, state, y, t, u, observed, self.joint_set)
-        decoupled_step = _decoupled_step_sqrt if self.square_root else _decoupled_step
-        return decoupled_step(self, model, state, y, t, u, observed, self.state_set, self.noise_set, self.outliers)
+        step_fn = _decoupled_step_sqrt if self.square_root else decoupled_step
+        return step_fn(self, model, state, y, t, u, observed, self.state_set, self.noise_set, self.outliers)
 
 
 class HuberKF(AbstractFilter):
@@ -263,7 +264,6 @@ class HuberKF(AbstractFilter):
     outliers: EpsContamination
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     square_root: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
@@ -277,8 +277,8 @@ class HuberKF(AbstractFilter):
         return _sqrt.initial(prior) if self.square_root else prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
-        decoupled_step = _decoupled_step_sqrt if self.square_root else _decoupled_step
-        return decoupled_step(self, model, state, y, t, u, observed, None, None, self.outliers)
+        step_fn = _decoupled_step_sqrt if self.square_root else decoupled_step
+        return step_fn(self, model, state, y, t, u, observed, None, None, self.outliers)
 
 
 class WassersteinKF(AbstractFilter):
@@ -299,13 +299,12 @@ class WassersteinKF(AbstractFilter):
     rho: Float[Array, ""]
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     square_root: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, rho: Float[ArrayLike, ""], *, rtol: float | None = None, max_iter: int = 500, throw: bool = True,
                  square_root: bool = False, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
-        self.rho = radius("rho", rho)
+        self.rho = check_scalar("rho", rho)
         self.rtol, self.max_iter, self.throw, self.square_root, self.outputs = rtol, max_iter, throw, square_root, outputs
 
     def init(self, model, prior: Gaussian):

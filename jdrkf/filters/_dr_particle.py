@@ -41,18 +41,17 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
-from .._validation import as_float_array, is_concrete
-from ..sets._base import in_range
+from .._validation import as_float_array, check_positive_int, in_range, is_concrete
 from ..sets._maxent import maxent_kl_solve, maxent_transport_solve, maxent_wasserstein_continuous
 from . import _resampling
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._particle import (
     ParticleState,
-    _check_resampling_gradient,
-    _gaussian_loglik_particles,
-    _skip_incomplete,
-    _weigh_and_resample,
+    check_resampling_gradient,
+    gaussian_loglik_particles,
     particle_moments,
+    skip_incomplete,
+    weigh_and_resample,
 )
 
 __all__ = ["DRParticleFilter"]
@@ -273,7 +272,6 @@ class DRParticleFilter(AbstractFilter):
     estimate: str = eqx.field(static=True)
     resampling_gradient: str = eqx.field(static=True)
     return_particles: bool = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -297,14 +295,7 @@ class DRParticleFilter(AbstractFilter):
         throw: bool = True,
         outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
-        def positive_int(name, v, allow_none=False):
-            if allow_none and v is None:
-                return None
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"{name} must be a positive int, got {v!r}")
-            return v
-
-        self.num_particles = positive_int("num_particles", num_particles)
+        self.num_particles = check_positive_int("num_particles", num_particles)
         if prior not in _PRIORS:
             raise ValueError(f"prior must be one of {_PRIORS}, got {prior!r}")
         if likelihood not in _LIKELIHOODS:
@@ -325,13 +316,13 @@ class DRParticleFilter(AbstractFilter):
         if likelihood == "wasserstein" and is_concrete(self.likelihood_radius) and float(self.likelihood_radius) <= 0:
             raise ValueError("likelihood='wasserstein' (Method 4) needs likelihood_radius > 0")
         self.prior, self.likelihood, self.outlier = prior, likelihood, outlier
-        self.num_likelihood_particles = positive_int("num_likelihood_particles", num_likelihood_particles)
-        self.num_integration_points = positive_int("num_integration_points", num_integration_points)
-        self.batch_size = positive_int("batch_size", batch_size, allow_none=True)
+        self.num_likelihood_particles = check_positive_int("num_likelihood_particles", num_likelihood_particles)
+        self.num_integration_points = check_positive_int("num_integration_points", num_integration_points)
+        self.batch_size = None if batch_size is None else check_positive_int("batch_size", batch_size)
         if estimate not in ("weighted_mean", "resampled_mean"):
             raise ValueError(f"estimate must be 'weighted_mean' or 'resampled_mean', got {estimate!r}")
         self.resampling, self.ess_threshold, self.estimate = resampling, ess_threshold, estimate
-        _check_resampling_gradient(resampling_gradient)
+        check_resampling_gradient(resampling_gradient)
         self.resampling_gradient = resampling_gradient
         self.return_particles = bool(return_particles)
         self.throw, self.outputs = bool(throw), outputs
@@ -370,8 +361,8 @@ class DRParticleFilter(AbstractFilter):
         if model.measurement_noise is None:  # N(y; h(x), θR); θ = 1 is bitwise BootstrapPF
             hx = jax.vmap(lambda xi: model.h(xi, t))(x)
             scaled = eqx.tree_at(lambda m: m.R, model, theta * model.R)
-            return _gaussian_loglik_particles(scaled, y, hx, observed)
-        return _skip_incomplete(lambda y: _inflated_loglik(model, x, y, t, theta), y, observed)
+            return gaussian_loglik_particles(scaled, y, hx, observed)
+        return skip_incomplete(lambda y: _inflated_loglik(model, x, y, t, theta), y, observed)
 
     def _loglik_particles(self, ys, y, key, observed):
         """Methods 4–5 from the likelihood particles `ys (M, R, m)`; `key` draws Method 4's
@@ -453,7 +444,7 @@ class DRParticleFilter(AbstractFilter):
                 ll = jnp.where(outlier, ll_near, ll)
         # Steps 4-5: weight update and resampling (as BootstrapPF).
         unnorm = logq + ll
-        new_x, new_lw, lw, filt, loglik, ess, do_resample, result = _weigh_and_resample(self, x, unnorm, k_res)
+        new_x, new_lw, lw, filt, loglik, ess, do_resample, result = weigh_and_resample(self, x, unnorm, k_res)
         info = {"ess": ess, "resampled": do_resample, "outlier": outlier, "max_loglik": max_ll}
         if self.return_particles:
             info.update(particles=x, prior_log_weights=logq, log_weights=lw)

@@ -122,7 +122,6 @@ class ExtendedKF(AbstractFilter):
 
     filter: AbstractFilter
     iterations: int = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
 
     def __init__(

@@ -11,11 +11,12 @@ from jax import lax
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
+from .._gaussian import Gaussian, log_density
 from .._multisensor import MultiSensorModel
 from ..sets._marginal import MarginalKL, MarginalMoment, marginal_mmse
 from ._base import RESULTS, AbstractFilter, StepOutput
-from ._kalman import _gaussian_loglik, _step_result, predict, update
+from ._kalman import predict, update
+from ._steps import step_result
 
 
 class CKF(AbstractFilter):
@@ -23,7 +24,6 @@ class CKF(AbstractFilter):
     measurements, block-diagonal `R` plus the known `cross_cov`). `ys` are the stacked
     measurements `(T, m)`; `throw`, `outputs` as in `jdrkf.KalmanFilter`."""
 
-    throw: bool = eqx.field(default=True, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
 
@@ -34,7 +34,7 @@ class CKF(AbstractFilter):
         lin = model.as_linear()
         pred = predict(lin, state, t, u)
         filt, loglik, failed = update(lin, pred, y, t, observed=observed)
-        return filt, StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
+        return filt, StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=step_result(failed, filt))
 
 
 # ----------------------------------------------------------------------------------------
@@ -187,7 +187,6 @@ class CovarianceIntersection(AbstractFilter):
     criterion: Literal["det", "trace"] = eqx.field(default="det", static=True)
     rtol: float | None = eqx.field(default=None, static=True, kw_only=True)
     max_iter: int = eqx.field(default=200, static=True, kw_only=True)
-    throw: bool = eqx.field(default=True, static=True, kw_only=True)
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
     shared_covariance: ClassVar[bool] = True
     supports_missing: ClassVar[bool] = False
@@ -214,7 +213,7 @@ class CovarianceIntersection(AbstractFilter):
         means = jnp.stack([g.mean for g in locals_])
         covs = jnp.stack([g.cov for g in locals_])
         fused, sol = covariance_intersection(means, covs, self.criterion, rtol=self.rtol, max_iter=self.max_iter)
-        res = _step_result(failed, fused)
+        res = step_result(failed, fused)
         res = RESULTS.where((res == RESULTS.successful) & ~sol.converged, RESULTS.solver_not_converged, res)
         info = {"weights": sol.weights, "gap": sol.gap, "iterations": sol.iterations, "converged": sol.converged}
         nan = jnp.asarray(jnp.nan, fused.mean.dtype)
@@ -255,7 +254,6 @@ class MarginalDRKF(AbstractFilter):
     set: MarginalMoment | MarginalKL  # noqa: A003
     rtol: float | None = eqx.field(default=None, static=True, kw_only=True)
     max_iter: int = eqx.field(default=2000, static=True, kw_only=True)
-    throw: bool = eqx.field(default=True, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
 
@@ -285,7 +283,7 @@ class MarginalDRKF(AbstractFilter):
         chol = linalg.cholesky(syy)
         failed = ~jnp.all(jnp.isfinite(chol))
         filt = Gaussian(mean_pred + res.gain @ innov, linalg.symmetrize(res.posterior_cov))
-        result = _step_result(failed, filt)
+        result = step_result(failed, filt)
         result = RESULTS.where((result == RESULTS.successful) & ~res.converged, RESULTS.solver_not_converged, result)
         result = RESULTS.where(self.set.valid(), result, RESULTS.invalid_hyperparameter)
         info = {
@@ -298,7 +296,7 @@ class MarginalDRKF(AbstractFilter):
         out = StepOutput(
             predicted=Gaussian(mean_pred, linalg.symmetrize(res.cov[:n, :n])),
             filtered=filt,
-            loglik=_gaussian_loglik(chol, innov, num_obs),
+            loglik=log_density(chol, innov, num_obs),
             info=info,
             result=result,
         )

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 from typing import ClassVar
 
 import equinox as eqx
@@ -13,11 +11,12 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
+from .._gaussian import Gaussian, log_density
 from .._models import LinearModel
 from .._validation import is_concrete, psd_rtol
 from . import _sqrt
 from ._base import RESULTS, AbstractFilter, StepOutput
+from ._steps import constant_gain_step, measurement, step_result
 
 
 def predict(model: LinearModel, belief: Gaussian, t: Int[ArrayLike, ""], u: Float[Array, " p"] | None = None) -> Gaussian:
@@ -29,34 +28,6 @@ def predict(model: LinearModel, belief: Gaussian, t: Int[ArrayLike, ""], u: Floa
         mean = mean + mdl.B @ u
     cov = linalg.symmetrize(mdl.F @ belief.cov @ mdl.F.T + mdl.G @ mdl.Q @ mdl.G.T)
     return Gaussian(mean, cov)
-
-
-def _masked_measurement(
-    mdl: LinearModel, y: Float[Array, " m"], observed: Bool[Array, " m"], noise_cov: Float[Array, "m m"] | None = None
-):
-    """Rows of missing components (`observed` false) are decoupled: `H` row and residual
-    set to zero and the `R` (or `noise_cov`) row/column replaced by the identity's. The
-    update then equals the update with only the observed rows, with static shapes."""
-    obs_f = observed.astype(y.dtype)
-    h = mdl.H * obs_f[:, None]
-    r = (mdl.R if noise_cov is None else noise_cov) * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
-    resid = jnp.where(observed, y - mdl.noise_mean, 0.0)
-    return observed, h, r, resid
-
-
-def _measurement(model: LinearModel, y: Float[Array, " m"], t, observed: Bool[Array, " m"] | None):
-    """`(observed, H, R, y − μ_v)` of step `t`, with the rows that `observed` marks missing
-    decoupled (`observed=None`: all rows used, nothing depends on `y` but the residual)."""
-    mdl = model.at(t)
-    if observed is not None:
-        return _masked_measurement(mdl, y, observed)
-    return jnp.ones(y.shape, bool), mdl.H, mdl.R, y - mdl.noise_mean
-
-
-def _gaussian_loglik(chol_s, innov, num_observed):
-    z = linalg.cho_solve(chol_s, innov)
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_s)))
-    return -0.5 * (innov @ z + logdet + num_observed * math.log(2 * math.pi))
 
 
 def update(
@@ -74,7 +45,7 @@ def update(
     `log N(y_k; H m⁻ + μ_v, H P⁻ Hᵀ + R)` over the observed components, and a flag that
     is `True` when the innovation covariance was not positive definite.
     """
-    observed, h, r, resid = _measurement(model, y, t, observed)
+    observed, h, r, resid = measurement(model, y, t, observed)
     innov = resid - h @ predicted.mean
     s = linalg.symmetrize(h @ predicted.cov @ h.T + r)
     chol_s = linalg.cholesky(s)
@@ -83,7 +54,7 @@ def update(
     mean = predicted.mean + gain @ innov
     a = jnp.eye(predicted.mean.shape[0], dtype=s.dtype) - gain @ h
     cov = linalg.symmetrize(a @ predicted.cov @ a.T + gain @ r @ gain.T)
-    loglik = _gaussian_loglik(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
+    loglik = log_density(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
     return Gaussian(mean, cov), loglik, failed
 
 
@@ -104,31 +75,11 @@ def update_sqrt(
     Returns the filtered mean and factor, the log-likelihood increment and the failure
     flag of `update`.
     """
-    observed, h, r, resid = _measurement(model, y, t, observed)
+    observed, h, r, resid = measurement(model, y, t, observed)
     chol_s, cross, chol_filt, failed = _sqrt.split(_sqrt.array_update(chol, h, linalg.psd_factor(r)), h.shape[0])
     innov = resid - h @ mean
-    loglik = _gaussian_loglik(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
+    loglik = log_density(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
     return mean + _sqrt.gain(chol_s, cross) @ innov, chol_filt, loglik, failed
-
-
-def _is_psd(cov: Float[Array, "n n"]) -> Bool[Array, ""]:
-    """`λ_min(cov) ≥ −c n eps · Tr cov` (`c` of `psd_rtol`): the Cholesky factor of
-    `cov + (c n eps Tr(cov) + tiny) I` is finite (singular PSD matrices, zero included, pass).
-    False for non-finite entries."""
-    n = cov.shape[-1]
-    shift = psd_rtol(cov.dtype, n) * jnp.abs(jnp.trace(cov)) + jnp.finfo(cov.dtype).tiny
-    return jnp.all(jnp.isfinite(linalg.cholesky(cov + shift * jnp.eye(n, dtype=cov.dtype))))
-
-
-def _step_result(failed, belief: Gaussian) -> RESULTS:
-    """Per-step code from the covariance path (the means are checked once per run by
-    `AbstractFilter.__call__`, so this costs nothing per run when the covariances are shared):
-    a failed update, a non-finite covariance, or one that lost positive semidefiniteness
-    beyond rounding (float32 on ill-conditioned systems)."""
-    finite = jnp.all(jnp.isfinite(belief.cov))
-    psd = _is_psd(belief.cov)
-    code = RESULTS.where(psd, RESULTS.successful, RESULTS.indefinite_covariance)
-    return RESULTS.where(failed, RESULTS.nonpositive_innovation, RESULTS.where(finite, code, RESULTS.nonfinite_state))
 
 
 class KalmanFilter(AbstractFilter):
@@ -161,7 +112,7 @@ class KalmanFilter(AbstractFilter):
     ```
     """
 
-    throw: bool = eqx.field(default=True, static=True)
+    throw: bool = eqx.field(default=True, static=True)  # positional here: AbstractFilter's, not keyword-only
     square_root: bool = eqx.field(default=False, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
 
@@ -174,10 +125,10 @@ class KalmanFilter(AbstractFilter):
             mean, chol, loglik, failed = update_sqrt(model, mean_pred, chol_pred, y, t, observed=observed)
             pred, filt = Gaussian(mean_pred, _sqrt.outer(chol_pred)), Gaussian(mean, _sqrt.outer(chol))
             info = {"predicted_chol_cov": chol_pred, "filtered_chol_cov": chol}
-            return (mean, chol), StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=_step_result(failed, filt))
+            return (mean, chol), StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=step_result(failed, filt))
         pred = predict(model, state, t, u)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
-        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
+        out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=step_result(failed, filt))
         return filt, out
 
 
@@ -254,7 +205,7 @@ class SteadyStateKalmanFilter(AbstractFilter):
     gives `RESULTS.solver_not_converged` at every step.
     """
 
-    throw: bool = eqx.field(default=True, static=True)
+    throw: bool = eqx.field(default=True, static=True)  # positional here: AbstractFilter's, not keyword-only
     shared_covariance: ClassVar[bool] = True
 
     @staticmethod
@@ -288,34 +239,8 @@ class SteadyStateKalmanFilter(AbstractFilter):
         return prior.mean, ss, linalg.cholesky(ss.innovation_cov)
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
-        state, out = _constant_gain_step(model, state, y, u, None, observed)
+        state, out = constant_gain_step(model, state, y, u, None, observed)
         # A failed steady state (traced model) overrides the per-step codes it causes.
         result = RESULTS.where(state[1].converged, out.result, RESULTS.solver_not_converged)
         return state, StepOutput(predicted=out.predicted, filtered=out.filtered, loglik=out.loglik, info=out.info, result=result)
 
-
-def _constant_gain_step(model, state, y, u, noise_cov, observed, converged=True):
-    """One step with the constant gain of `state = (mean, SteadyStateGain, chol(S))`;
-    `noise_cov` is the measurement covariance behind `S` (default `R`; used for missing data)."""
-    mean, ss, chol_s = state
-    mean_pred = model.F @ mean + model.G @ model.process_mean
-    if model.B is not None:
-        mean_pred = mean_pred + model.B @ u
-    innov = y - model.noise_mean - model.H @ mean_pred
-    if observed is not None:
-        # Drop missing components; the log-likelihood is the marginal of N(0, S) on the rest.
-        _, h, r, _ = _masked_measurement(model, y, observed, noise_cov)
-        innov = jnp.where(observed, innov, 0.0)
-        chol_obs = linalg.cholesky(linalg.symmetrize(h @ ss.predicted_cov @ h.T + r))
-        num_observed = jnp.sum(observed.astype(innov.dtype))
-    else:
-        chol_obs, num_observed = chol_s, y.shape[0]
-    mean_filt = mean_pred + ss.gain @ innov
-    loglik = _gaussian_loglik(chol_obs, innov, num_observed)
-    pred = Gaussian(mean_pred, ss.predicted_cov)
-    filt = Gaussian(mean_filt, ss.filtered_cov)
-    failed = ~jnp.all(jnp.isfinite(chol_s))
-    result = _step_result(failed, filt)
-    result = RESULTS.where((result == RESULTS.successful) & ~jnp.asarray(converged), RESULTS.solver_not_converged, result)
-    out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=result)
-    return (mean_filt, ss, chol_s), out

@@ -18,7 +18,7 @@ from jax import lax
 from jaxtyping import ArrayLike, Bool, Float, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
+from .._gaussian import Gaussian, log_density
 from .._models import LinearModel
 from ._base import (
     DEFAULT_OUTPUTS,
@@ -28,8 +28,9 @@ from ._base import (
     FilterResult,
     StepOutput,
 )
-from ._kalman import _gaussian_loglik, _measurement, _step_result, predict, update
-from ._smoother import _NEEDED, SmootherResult, rts_backward
+from ._kalman import predict, update
+from ._smoother import NEEDED_OUTPUTS, SmootherResult, rts_backward
+from ._steps import measurement, step_result
 
 
 def _filter_element(f, pred: Gaussian, h, r, resid):
@@ -142,7 +143,7 @@ class ParallelKalmanFilter(AbstractFilter):
     ```
     """
 
-    throw: bool = eqx.field(default=True, static=True)
+    throw: bool = eqx.field(default=True, static=True)  # positional here: AbstractFilter's, not keyword-only
     shared_covariance: ClassVar[bool] = True
 
     def init(self, model: LinearModel, prior: Gaussian) -> Gaussian:
@@ -151,7 +152,7 @@ class ParallelKalmanFilter(AbstractFilter):
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         pred = predict(model, state, t, u)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
-        return filt, StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=_step_result(failed, filt))
+        return filt, StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=step_result(failed, filt))
 
     def _run(self, model, prior, ys, key, inputs, observed) -> FilterResult:
         if ys.shape[0] == 0:
@@ -170,7 +171,7 @@ def _parallel_filter(model: LinearModel, prior: Gaussian, ys, inputs, observed) 
     scan is many small operations, slow to dispatch one by one in an eager call)."""
     ts = jnp.arange(ys.shape[0])
     point = Gaussian(jnp.zeros_like(prior.mean), jnp.zeros_like(prior.cov))  # x_{k−1} = 0
-    obs, h, r, resid = jax.vmap(lambda t, y, o: _measurement(model, y, t, o))(ts, ys, observed)
+    obs, h, r, resid = jax.vmap(lambda t, y, o: measurement(model, y, t, o))(ts, ys, observed)
     # Element k: the step-t transition from x_{k−1} = 0; element 1 from the prior (F replaced by 0).
     fs = jax.vmap(lambda t: model.at(t).F)(ts)
     fs = fs.at[0].set(jnp.zeros_like(fs[0]))
@@ -187,11 +188,11 @@ def _parallel_filter(model: LinearModel, prior: Gaussian, ys, inputs, observed) 
 
     def loglik(pred, o, h, r, resid):
         chol = linalg.cholesky(linalg.symmetrize(h @ pred.cov @ h.T + r))
-        increment = _gaussian_loglik(chol, resid - h @ pred.mean, jnp.sum(o.astype(resid.dtype)))
+        increment = log_density(chol, resid - h @ pred.mean, jnp.sum(o.astype(resid.dtype)))
         return increment, ~jnp.all(jnp.isfinite(chol))
 
     increments, failed = jax.vmap(loglik)(predicted, obs, h, r, resid)
-    codes = jax.vmap(lambda f, m, p: _step_result(f, Gaussian(m, p)))(failed, means, covs)
+    codes = jax.vmap(lambda f, m, p: step_result(f, Gaussian(m, p)))(failed, means, covs)
     result = _first_failure(codes)
     # As in AbstractFilter.__call__: a non-finite mean persists, so the last one is checked.
     result = RESULTS.where((result == RESULTS.successful) & ~jnp.all(jnp.isfinite(means[-1])), RESULTS.nonfinite_state, result)
@@ -245,7 +246,7 @@ def parallel_smooth(
     filter call; `throw`: raise (through `eqx.error_if`) when the filter or the backward pass
     fails, else only set `result`.
     """
-    flt = ParallelKalmanFilter(throw=False, outputs=DEFAULT_OUTPUTS + _NEEDED)
+    flt = ParallelKalmanFilter(throw=False, outputs=DEFAULT_OUTPUTS + NEEDED_OUTPUTS)
     res = flt(model, prior, ys, inputs=inputs, observed=observed)
     if res.filtered_means.shape[0] == 0:
         out = rts_backward(model, prior, res)

@@ -9,13 +9,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jax.scipy.linalg import solve_triangular
 from jax.scipy.special import logsumexp
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
+from .._gaussian import Gaussian, log_density
 from .._nonlinear import NonlinearModel
+from .._validation import check_positive_int
 from ._base import RESULTS, AbstractFilter, StepOutput
 from ._resampling import RESAMPLERS
 
@@ -23,7 +23,7 @@ _ESTIMATES = ("weighted_mean", "resampled_mean")
 _RESAMPLING_GRADIENTS = ("score", "ignore")
 
 
-def _check_resampling_gradient(value) -> None:
+def check_resampling_gradient(value) -> None:
     if value not in _RESAMPLING_GRADIENTS:
         raise ValueError(f"resampling_gradient must be one of {list(_RESAMPLING_GRADIENTS)}, got {value!r}")
 
@@ -45,7 +45,7 @@ def particle_moments(particles: Float[Array, "N n"], log_weights: Float[Array, "
     return Gaussian(mean, cov)
 
 
-def _skip_incomplete(loglik_fn, y, observed):
+def skip_incomplete(loglik_fn, y, observed):
     """Per-particle log-likelihoods `loglik_fn(y)`, zero for an observation with a missing
     entry (non-Gaussian noise laws are not marginalized)."""
     if observed is None:
@@ -55,10 +55,10 @@ def _skip_incomplete(loglik_fn, y, observed):
     return jnp.where(complete, ll, jnp.zeros_like(ll))
 
 
-def _gaussian_loglik_particles(model: NonlinearModel, y, hx, observed):
+def gaussian_loglik_particles(model: NonlinearModel, y, hx, observed):
     """`log N(y; h(x_i), R)` for all particles with ONE Cholesky of `R` (rows of `y` that
-    `observed` marks missing decoupled as in `jdrkf.filters._kalman._masked_measurement`): per-particle work
-    is matrix products only, so no batched LAPACK call under `vmap` over particles."""
+    `observed` marks missing decoupled as in `jdrkf.filters._steps.masked_measurement`): all the
+    residuals enter one solve (`log_density`), so no batched LAPACK call under `vmap` over particles."""
     r = model.R
     if observed is not None:
         obs_f = observed.astype(r.dtype)
@@ -68,11 +68,7 @@ def _gaussian_loglik_particles(model: NonlinearModel, y, hx, observed):
     else:
         resid = y[None, :] - hx
         num_obs = jnp.asarray(y.shape[0], r.dtype)
-    chol = linalg.cholesky(linalg.symmetrize(r))
-    chol_inv = solve_triangular(chol, jnp.eye(r.shape[0], dtype=r.dtype), lower=True)
-    z = resid @ chol_inv.T
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    return -0.5 * (jnp.sum(z * z, axis=-1) + logdet + num_obs * math.log(2 * math.pi))
+    return log_density(linalg.cholesky(linalg.symmetrize(r)), resid, num_obs)
 
 
 class BootstrapPF(AbstractFilter):
@@ -160,15 +156,12 @@ class BootstrapPF(AbstractFilter):
     estimate: str = eqx.field(default="weighted_mean", static=True, kw_only=True)
     resampling_gradient: str = eqx.field(default="score", static=True, kw_only=True)
     return_particles: bool = eqx.field(default=False, static=True, kw_only=True)
-    throw: bool = eqx.field(default=True, static=True, kw_only=True)
 
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
     stochastic_init: ClassVar[bool] = True
 
     def __check_init__(self):
-        n = self.num_particles
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"num_particles must be a positive int, got {n!r}")
+        check_positive_int("num_particles", self.num_particles)
         if self.resampling not in RESAMPLERS:
             raise ValueError(f"resampling must be one of {sorted(RESAMPLERS)}, got {self.resampling!r}")
         c = self.ess_threshold
@@ -176,7 +169,7 @@ class BootstrapPF(AbstractFilter):
             raise ValueError(f"ess_threshold must be a number in [0, 1], got {c!r}")
         if self.estimate not in _ESTIMATES:
             raise ValueError(f"estimate must be one of {list(_ESTIMATES)}, got {self.estimate!r}")
-        _check_resampling_gradient(self.resampling_gradient)
+        check_resampling_gradient(self.resampling_gradient)
 
     def init(self, model: NonlinearModel, prior: Gaussian, key: PRNGKeyArray | None = None) -> ParticleState:
         """`N` draws from `prior` with equal weights."""
@@ -189,8 +182,8 @@ class BootstrapPF(AbstractFilter):
     def _loglik(self, model: NonlinearModel, y, particles, t, observed):
         hx = jax.vmap(lambda x: model.h(x, t))(particles)
         if model.measurement_noise is None:
-            return _gaussian_loglik_particles(model, y, hx, observed)
-        return _skip_incomplete(lambda y: jax.vmap(lambda x: model.measurement_logpdf(y, x, t))(particles), y, observed)
+            return gaussian_loglik_particles(model, y, hx, observed)
+        return skip_incomplete(lambda y: jax.vmap(lambda x: model.measurement_logpdf(y, x, t))(particles), y, observed)
 
     def step(self, model: NonlinearModel, state: ParticleState, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         if key is None:
@@ -201,7 +194,7 @@ class BootstrapPF(AbstractFilter):
         x = jax.vmap(lambda xi, wi: model.transition(xi, wi, t))(state.particles, w)
         pred = particle_moments(x, state.log_weights)
         unnorm = state.log_weights + self._loglik(model, y, x, t, observed)
-        new_x, new_lw, lw, filt, loglik, ess, do_resample, result = _weigh_and_resample(self, x, unnorm, k_res)
+        new_x, new_lw, lw, filt, loglik, ess, do_resample, result = weigh_and_resample(self, x, unnorm, k_res)
         info = {"ess": ess, "resampled": do_resample}
         if self.return_particles:
             info["particles"] = x
@@ -217,7 +210,7 @@ class BootstrapPF(AbstractFilter):
 __all__ = ["BootstrapPF", "ParticleState", "particle_moments"]
 
 
-def _weigh_and_resample(flt, x, unnorm, key):
+def weigh_and_resample(flt, x, unnorm, key):
     """The end of a particle-filter step (BootstrapPF and DRParticleFilter): normalize the
     log-weights `unnorm` (log-sum-exp = the log-likelihood increment), the weighted moments,
     the ESS, resampling with `flt.resampling` when ESS < `flt.ess_threshold`·N, and the

@@ -25,11 +25,12 @@ from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
-from ..sets._base import in_range
+from .._gaussian import Gaussian, log_density
+from .._validation import check_positive_int, in_range
 from ..sets._weights import AbstractWeight, channel_param, student_t_weight
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
-from ._kalman import _gaussian_loglik, _measurement, _step_result, predict
+from ._kalman import predict
+from ._steps import measurement, step_result
 
 __all__ = ["RBKF", "STKF", "STKF_AR1", "STKF_AR2", "VBKF", "IRLSResult", "irls_update"]
 
@@ -43,8 +44,7 @@ def _inflate(chol, w):
 
 
 def _check_static(max_iter, tol, covariance):
-    if not isinstance(max_iter, int) or isinstance(max_iter, bool) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive int, got {max_iter!r}")
+    check_positive_int("max_iter", max_iter)
     if not isinstance(tol, int | float) or not tol >= 0:
         raise ValueError(f"tol must be a number >= 0, got {tol!r}")
     if covariance not in ("reweighted", "nominal"):
@@ -169,7 +169,7 @@ def irls_update(
         e_y=e_y,
         chol_p=chol_p,
         chol_r=chol_r,
-        loglik=_gaussian_loglik(chol_s, innov, num_obs),
+        loglik=log_density(chol_s, innov, num_obs),
         failed=~jnp.all(jnp.isfinite(chol_s)),
         iterations=iterations,
     )
@@ -213,7 +213,7 @@ class _IRLSFilter(AbstractFilter):
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         pred = predict(model, state, t, u)
-        observed, h, r, resid = _measurement(model, y, t, observed)
+        observed, h, r, resid = measurement(model, y, t, observed)
         wx, wy = self._weights()
         sol = irls_update(
             pred, h, r, resid, wx, wy,
@@ -222,7 +222,7 @@ class _IRLSFilter(AbstractFilter):
         )
         filt = sol.filtered
         info = {"iterations": sol.iterations, "weights_x": sol.weights_x, "weights_y": sol.weights_y}
-        result = RESULTS.where(self._valid(), _step_result(sol.failed, filt), RESULTS.invalid_hyperparameter)
+        result = RESULTS.where(self._valid(), step_result(sol.failed, filt), RESULTS.invalid_hyperparameter)
         out = StepOutput(predicted=pred, filtered=filt, loglik=sol.loglik, info=info, result=result)
         return filt, out
 
@@ -278,7 +278,6 @@ class RBKF(_IRLSFilter):
     tol: float = eqx.field(static=True)
     fixed_iterations: bool = eqx.field(static=True)
     covariance: str = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -353,7 +352,6 @@ class STKF(_IRLSFilter):
     tol: float = eqx.field(static=True)
     fixed_iterations: bool = eqx.field(static=True)
     covariance: str = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -447,7 +445,6 @@ class STKF_AR1(AbstractFilter):
     tol: float = eqx.field(static=True)
     fixed_iterations: bool = eqx.field(static=True)
     covariance: str = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -521,7 +518,7 @@ class STKF_AR1(AbstractFilter):
         tau2_minus = jnp.where(adaptive, rho * tau2_prev, tau2_prev)
 
         pred = predict(model, belief, t, u)
-        observed, h, r, resid = _measurement(model, y, t, observed)
+        observed, h, r, resid = measurement(model, y, t, observed)
         sol = irls_update(
             pred, h, r, resid,
             lambda e: student_t_weight(e, nu[:n], tau2_minus[:n]),
@@ -551,7 +548,7 @@ class STKF_AR1(AbstractFilter):
         keep = jnp.concatenate([jnp.ones(n, bool), observed])
         nu, tau2 = jnp.where(keep, nu, nu_prev), jnp.where(keep, tau2, tau2_prev)
         info = {"iterations": sol.iterations, "weights_x": sol.weights_x, "weights_y": sol.weights_y, "nu": nu, "tau2": tau2}
-        result = RESULTS.where(self._valid(), _step_result(sol.failed, filt), RESULTS.invalid_hyperparameter)
+        result = RESULTS.where(self._valid(), step_result(sol.failed, filt), RESULTS.invalid_hyperparameter)
         out = StepOutput(predicted=pred, filtered=filt, loglik=sol.loglik, info=info, result=result)
         return (filt, nu, tau2), out
 
@@ -625,7 +622,6 @@ class VBKF(AbstractFilter):
     shape_increment: float = eqx.field(static=True)
     start: str = eqx.field(static=True)
     covariance_in_iterations: bool = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -644,8 +640,7 @@ class VBKF(AbstractFilter):
         self.alpha0 = channel_param("alpha0", alpha0)
         self.beta0 = channel_param("beta0", beta0)
         self.rho = channel_param("rho", rho, upper=1.0)
-        if not isinstance(num_iter, int) or isinstance(num_iter, bool) or num_iter < 1:
-            raise ValueError(f"num_iter must be a positive int, got {num_iter!r}")
+        num_iter = check_positive_int("num_iter", num_iter)
         if not isinstance(shape_increment, int | float) or not shape_increment >= 0:
             raise ValueError(f"shape_increment must be a number >= 0, got {shape_increment!r}")
         if start not in ("scale", "predicted"):
@@ -678,7 +673,7 @@ class VBKF(AbstractFilter):
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         belief, alpha_prev, beta_prev = state
         pred = predict(model, belief, t, u)
-        observed, h, r, resid = _measurement(model, y, t, observed)
+        observed, h, r, resid = measurement(model, y, t, observed)
         obs_f = observed.astype(resid.dtype)
         m = resid.shape[0]
         if self.fixed_prior:
@@ -722,7 +717,7 @@ class VBKF(AbstractFilter):
         valid = in_range(self.alpha0, 0.0, lower_open=True) & in_range(self.beta0, 0.0, lower_open=True)
         valid = valid & in_range(self.rho, 0.0, 1.0, lower_open=True)
         out = StepOutput(
-            predicted=pred, filtered=filt, loglik=_gaussian_loglik(chol_s, innov, num_obs), info=info,
-            result=RESULTS.where(valid, _step_result(failed, filt), RESULTS.invalid_hyperparameter),
+            predicted=pred, filtered=filt, loglik=log_density(chol_s, innov, num_obs), info=info,
+            result=RESULTS.where(valid, step_result(failed, filt), RESULTS.invalid_hyperparameter),
         )
         return (filt, alpha, beta), out

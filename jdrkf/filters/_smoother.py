@@ -23,7 +23,7 @@ from ._unscented import EnsembleKF
 
 _LINEAR_MODELS = (LinearModel, MultiSensorModel)
 _SAMPLING_FILTERS = (BootstrapPF, DRParticleFilter, EnsembleKF)
-_NEEDED = ("filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances")
+NEEDED_OUTPUTS = ("filtered_means", "filtered_covariances", "predicted_means", "predicted_covariances")
 
 
 class SmootherResult(eqx.Module):
@@ -98,7 +98,7 @@ def rts_backward(model: LinearModel | MultiSensorModel, prior: Gaussian, result:
         raise ValueError(f"prior must be a jdrkf.Gaussian, got {type(prior).__name__}")
     if not isinstance(result, FilterResult):
         raise ValueError(f"result must be a jdrkf.FilterResult, got {type(result).__name__}")
-    missing = [name for name in _NEEDED if getattr(result, name) is None]
+    missing = [name for name in NEEDED_OUTPUTS if getattr(result, name) is None]
     if missing:
         raise ValueError(
             f"result has no {', '.join(missing)}: run the filter with outputs='all' (or with these names), "
@@ -214,7 +214,7 @@ class RTSSmoother(eqx.Module):
     ) -> SmootherResult:
         """Filter `ys` (`ys[t] = y_{t+1}`; arguments as in the filter's call), then smooth."""
         _check_model(model)
-        flt = with_outputs(self.filter, tuple(set(self.filter.outputs) | set(_NEEDED)))
+        flt = with_outputs(self.filter, tuple(set(self.filter.outputs) | set(NEEDED_OUTPUTS)))
         res = rts_backward(model, prior, flt(model, prior, ys, key, inputs=inputs, observed=observed))
         if self.filter.throw:
             res = res.result.error_if(res, res.result != RESULTS.successful)

@@ -13,11 +13,10 @@ from jax.scipy.linalg import block_diag
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian
+from .._gaussian import Gaussian, log_density
 from .._nonlinear import NonlinearModel
 from .._validation import is_concrete
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
-from ._kalman import _gaussian_loglik
 
 
 _SIGMA_POINTS = ("merwe", "simon")
@@ -99,7 +98,7 @@ def _moment_update(pred_mean, pred_cov, dx, y_pred, dy, wc, noise_cov, y, observ
     gain = linalg.cho_solve(chol_s, pxy.T).T
     mean = pred_mean + gain @ innov
     cov = linalg.symmetrize(pred_cov - gain @ pyy @ gain.T)
-    loglik = _gaussian_loglik(chol_s, innov, num_observed)
+    loglik = log_density(chol_s, innov, num_observed)
     return Gaussian(mean, cov), loglik, failed
 
 
@@ -204,7 +203,6 @@ class UnscentedKF(AbstractFilter):
     kappa: float | Float[Array, ""]
     sigma_points: str = eqx.field(static=True)
     redraw: bool = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
 
     def __init__(
@@ -270,7 +268,6 @@ class EnsembleKF(AbstractFilter):
 
     num_samples: int = eqx.field(static=True)
     redraw: bool = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     model_types: ClassVar[tuple[type, ...]] = (NonlinearModel,)
 
     def __init__(self, num_samples: int, *, redraw: bool = False, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):

@@ -17,12 +17,13 @@ from .. import linalg
 from .._gaussian import Gaussian
 from .._models import LinearModel
 from .._root import default_rtol, implicit_root, newton
-from ..sets._base import in_range, radius
+from .._validation import check_scalar, in_range
 from ..sets._solve import worst_case
-from ..sets._wasserstein import Wasserstein, _oracle_residual
+from ..sets._wasserstein import Wasserstein, oracle_residual
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter
-from ._dr import _decoupled_step
-from ._kalman import SteadyStateGain, _constant_gain_step
+from ._dr import decoupled_step
+from ._kalman import SteadyStateGain
+from ._steps import constant_gain_step
 
 
 def _posterior(prior_cov, noise_cov, h):
@@ -84,20 +85,19 @@ class WassersteinDRKF(AbstractFilter):
     theta_v: Float[Array, ""]
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, theta_x: Float[ArrayLike, ""], theta_v: Float[ArrayLike, ""], *, rtol: float | None = None,
                  max_iter: int = 500, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
-        self.theta_x = radius("theta_x", theta_x)
-        self.theta_v = radius("theta_v", theta_v)
+        self.theta_x = check_scalar("theta_x", theta_x)
+        self.theta_v = check_scalar("theta_v", theta_v)
         self.rtol, self.max_iter, self.throw, self.outputs = rtol, max_iter, throw, outputs
 
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
-        return _decoupled_step(self, model, state, y, t, u, observed, Wasserstein(self.theta_x), Wasserstein(self.theta_v), None)
+        return decoupled_step(self, model, state, y, t, u, observed, Wasserstein(self.theta_x), Wasserstein(self.theta_v), None)
 
     def covariance_recursion(self, model: LinearModel, nominal_prior_cov: Float[ArrayLike, "n n"], num_steps: int) -> CovarianceRecursion:
         """Run the covariance part of the filter (the DR Riccati recursion (15)) for
@@ -189,8 +189,8 @@ def _stationary_residual(a, h, w, v, theta_x, theta_v):
         weight = eye_n + a.T @ lam @ a
         dx = e.T @ weight @ e
         dv = gain.T @ weight @ gain
-        r_prior, qx, tx = _oracle_residual(theta_x, prior, mx, dx, nominal)
-        r_noise, qv, _ = _oracle_residual(theta_v, noise, mv, dv, v)
+        r_prior, qx, tx = oracle_residual(theta_x, prior, mx, dx, nominal)
+        r_noise, qv, _ = oracle_residual(theta_v, noise, mv, dv, v)
         return pack(r_prior, r_noise, qx, qv, lam - dx @ tx)
 
     return residual
@@ -397,13 +397,12 @@ class SteadyStateDRKF(AbstractFilter):
     theta_x: Float[Array, ""]
     theta_v: Float[Array, ""]
     max_iter: int = eqx.field(static=True)
-    throw: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
     def __init__(self, theta_x: Float[ArrayLike, ""], theta_v: Float[ArrayLike, ""], *, max_iter: int = 20,
                  throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
-        self.theta_x = radius("theta_x", theta_x)
-        self.theta_v = radius("theta_v", theta_v)
+        self.theta_x = check_scalar("theta_x", theta_x)
+        self.theta_v = check_scalar("theta_v", theta_v)
         self.max_iter, self.throw, self.outputs = int(max_iter), throw, outputs
 
     def solve(self, model: LinearModel) -> SteadyStateDR:
@@ -421,7 +420,7 @@ class SteadyStateDRKF(AbstractFilter):
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         mean, ss, chol_s, noise_cov, converged = state
-        (mean, ss, chol_s), out = _constant_gain_step(model, (mean, ss, chol_s), y, u, noise_cov, observed, converged)
+        (mean, ss, chol_s), out = constant_gain_step(model, (mean, ss, chol_s), y, u, noise_cov, observed, converged)
         valid = in_range(self.theta_x, 0.0) & in_range(self.theta_v, 0.0)
         out = eqx.tree_at(lambda o: o.result, out, RESULTS.where(valid, out.result, RESULTS.invalid_hyperparameter))
         return (mean, ss, chol_s, noise_cov, converged), out

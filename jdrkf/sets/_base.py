@@ -6,40 +6,7 @@ import abc
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
-
-from .._validation import as_float_array, is_concrete
-
-
-def radius(name: str, x: ArrayLike, lower: float = 0.0) -> Float[Array, ""]:
-    """A scalar hyper-parameter `>= lower` as a float array (checked when concrete)."""
-    x = as_float_array(name, x, (0,))
-    if is_concrete(x):
-        v = float(np.asarray(x))
-        if not np.isfinite(v) or v < lower:
-            raise ValueError(f"{name} must be a finite number >= {lower:g}, got {v:g}")
-    return x
-
-
-def in_range(
-    x: Float[ArrayLike, "*d"],
-    lower: float,
-    upper: float = np.inf,
-    *,
-    lower_open: bool = False,
-    upper_open: bool = False,
-    allow_inf: bool = False,
-) -> Bool[Array, ""]:
-    """Traced range check of a hyper-parameter (the run-time counterpart of the eager
-    checks): every entry of `x` lies in the interval from `lower` to `upper` (open or
-    closed ends) and is finite (`+inf` too with `allow_inf`); `False` for NaN. A few
-    scalar comparisons, unbatched under `vmap` over data."""
-    x = jnp.asarray(x)
-    above = x > lower if lower_open else x >= lower
-    below = x < upper if upper_open else x <= upper
-    finite = (x == jnp.inf) | jnp.isfinite(x) if allow_inf else jnp.isfinite(x)
-    return jnp.all(above & below & finite)
 
 
 class AbstractAmbiguitySet(eqx.Module):

@@ -8,7 +8,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._root import bracketed_newton
-from ._base import AbstractAmbiguitySet, in_range, radius
+from .._validation import check_scalar, in_range
+from ._base import AbstractAmbiguitySet
 
 _NEWTON_MAX_ITER = 200
 # φ(x) = 1/(1 − x) − 1 + ln(1 − x) = Σ_{k≥2} (1 − 1/k) xᵏ: below this size of x the closed
@@ -61,7 +62,7 @@ class KL(AbstractAmbiguitySet):
     c: Float[Array, ""]
 
     def __init__(self, c: Float[ArrayLike, ""]):
-        self.c = radius("c", c)
+        self.c = check_scalar("c", c)
 
     def is_nominal(self):
         return self.c == 0

@@ -48,8 +48,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
 from .._root import default_rtol, implicit_root, newton
-from .._validation import as_float_array, check_covariance, is_concrete
-from ._base import in_range
+from .._validation import as_float_array, check_covariance, check_positive_int, in_range, is_concrete
 
 _DYKSTRA_MAX_ITER = 200
 _BISECT_ITER = 80
@@ -443,7 +442,6 @@ def _make_zstar(kind, n, dims, rtol, max_iter):
         v = _barrier_path(F, dF, v, (g, bparams), mu, stages)
         # Certificate: a strictly feasible point whose gap bound is at most twice the
         # barrier's own `νμf₀` (relative to the nominal value `f₀ ≤ max f`).
-        z_bar = unvec(v)
         feasible = jnp.all(jnp.isfinite(v)) & jnp.isfinite(F(v, g, bparams, mu))
         gap, barrier = _barrier_gap(kind, dF, v, (g, bparams), mu, n, dims)
         polished = interior & feasible & (gap <= 2.0 * barrier)
@@ -505,8 +503,7 @@ def marginal_mmse(
     if not isinstance(dims, (tuple, list)) or len(dims) == 0 or not all(isinstance(d, (int, np.integer)) and d >= 1 for d in dims):
         raise ValueError(f"dims must be a non-empty tuple of positive ints (one per sensor), got {dims!r}")
     dims = tuple(int(d) for d in dims)
-    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
-        raise ValueError(f"n must be a positive int (the state dimension), got {n!r}")
+    n = check_positive_int("n", n, " (the state dimension)")
     n = int(n)
     d = n + sum(dims)
     if cov.shape != (d, d):

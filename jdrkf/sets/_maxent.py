@@ -42,8 +42,7 @@ from jax.nn import log_softmax, logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .._root import bracketed_newton, implicit_root
-from .._validation import as_float_array, is_concrete
-from ._base import in_range
+from .._validation import as_float_array, check_scalar, in_range, is_concrete
 
 __all__ = [
     "MaxEntContinuous",
@@ -115,18 +114,9 @@ def _check_prob(name, q):
     return q / jnp.sum(q)
 
 
-def _check_theta(theta, dtype):
-    theta = as_float_array("theta", theta, (0,))
-    if is_concrete(theta):
-        v = float(np.asarray(theta))
-        if not np.isfinite(v) or v < 0:
-            raise ValueError(f"theta must be a finite number >= 0, got {v:g}")
-    return theta.astype(dtype)
-
-
 def _theta_checked(res: MaxEntResult, theta) -> MaxEntResult:
     """`res` with `converged = False` when a traced `theta` is out of range (NaN, negative
-    or infinite; concrete values raise in `_check_theta`)."""
+    or infinite; concrete values raise in `check_scalar`)."""
     return eqx.tree_at(lambda r: r.converged, res, res.converged & in_range(theta, 0.0))
 
 
@@ -236,7 +226,7 @@ def maxent_kl_solve(
     """
     _check_method(method)
     q = _check_prob("q", q)
-    theta = _check_theta(theta, q.dtype)
+    theta = check_scalar("theta", theta).astype(q.dtype)
     if method == "exact":
         return _theta_checked(_kl_exact(q, theta, 60 if max_iter is None else max_iter), theta)
     return _theta_checked(_kl_pgd(q, theta, step, 50_000 if max_iter is None else max_iter, tol, init), theta)
@@ -369,7 +359,7 @@ def maxent_transport_solve(
     cost = as_float_array("cost", cost, (2,)).astype(q.dtype)
     if cost.shape[0] != q.shape[0]:
         raise ValueError(f"cost must have shape (N, M) with N = len(q) = {q.shape[0]}, got {cost.shape}")
-    theta = _check_theta(theta, q.dtype)
+    theta = check_scalar("theta", theta).astype(q.dtype)
     if is_concrete(cost) and is_concrete(theta) and is_concrete(q):
         c_np, q_np = np.asarray(cost, np.float64), np.asarray(q, np.float64)
         if np.any(c_np < 0) or not np.all(np.isfinite(c_np)):
@@ -682,7 +672,7 @@ def maxent_wasserstein_continuous(
     dtype = q.dtype
     xq = _check_support("support_q", support_q, q.shape[0]).astype(dtype)
     d = xq.shape[1]
-    theta = _check_theta(theta, dtype)
+    theta = check_scalar("theta", theta).astype(dtype)
     if is_concrete(temperature):
         t = float(np.asarray(temperature))
         if not np.isfinite(t) or t < 0 or (t == 0 and method == "exact"):

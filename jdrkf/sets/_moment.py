@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._validation import is_concrete
-from ._base import AbstractAmbiguitySet, in_range, radius
+from .._validation import check_scalar, in_range, is_concrete
+from ._base import AbstractAmbiguitySet
 
 
 class Moment(AbstractAmbiguitySet):
@@ -23,8 +23,8 @@ class Moment(AbstractAmbiguitySet):
     theta1: Float[Array, ""]
 
     def __init__(self, theta2: Float[ArrayLike, ""], *, theta1: Float[ArrayLike, ""] = 0.0):
-        self.theta2 = radius("theta2", theta2, lower=1.0)
-        self.theta1 = radius("theta1", theta1)
+        self.theta2 = check_scalar("theta2", theta2, lower=1.0)
+        self.theta1 = check_scalar("theta1", theta1)
         if is_concrete(self.theta1) and float(self.theta1) > 1.0:
             raise ValueError(f"theta1 must be in [0, 1], got {float(self.theta1):g}")
 

@@ -21,14 +21,12 @@ from fractions import Fraction
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 from jax.scipy.special import erf, erfc, log_ndtr
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._root import bracketed_newton, implicit_root
-from .._validation import as_float_array, is_concrete
-from ._base import in_range
+from .._validation import as_float_array, check_fraction, in_range, is_concrete
 
 __all__ = ["AbstractOutlierModel", "EpsContamination", "EpsNormal"]
 
@@ -207,17 +205,6 @@ def _lemma2_psi(mu, a, b, c):
 # ------------------------------------------------------------------------ models
 
 
-def _check_eps(eps, upper, closed, hint=""):
-    eps = as_float_array("eps", eps, (0,))
-    if is_concrete(eps):
-        value, upper_ = float(eps), float(np.asarray(upper, eps.dtype))  # compare in eps's precision
-        inside = 0.0 <= value <= upper_ if closed else 0.0 <= value < upper_
-        if not inside:
-            bracket = "]" if closed else ")"
-            raise ValueError(f"eps must lie in [0, {upper}{bracket}, got {value}{hint}")
-    return eps
-
-
 def _input(mu, dtype):
     mu = jnp.asarray(mu)
     return mu if jnp.issubdtype(mu.dtype, jnp.inexact) else mu.astype(dtype)
@@ -276,7 +263,7 @@ class EpsContamination(AbstractOutlierModel):
     k: Float[Array, ""] | None
 
     def __init__(self, eps: Float[ArrayLike, ""], k: Float[ArrayLike, ""] | None = None):
-        self.eps = _check_eps(eps, 0.5, closed=False)
+        self.eps = check_fraction("eps", eps, 0.5, closed=False)
         if k is not None:
             k = as_float_array("k", k, (0,))
             if is_concrete(k) and not float(k) > 0.0:
@@ -343,7 +330,7 @@ class EpsNormal(AbstractOutlierModel):
 
     def __init__(self, eps: Float[ArrayLike, ""]):
         hint = " (Lemma 2 needs a <= b; Remark 2. Use EpsContamination for larger eps)"
-        self.eps = _check_eps(eps, _EPS_NORMAL_MAX, closed=True, hint=hint)
+        self.eps = check_fraction("eps", eps, _EPS_NORMAL_MAX, hint=hint)
 
     def valid(self) -> Bool[Array, ""]:
         """`0 ≤ ε ≤ 0.0303` (compared in the precision of `eps`)."""

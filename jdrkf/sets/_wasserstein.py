@@ -8,7 +8,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._root import bracketed_newton
-from ._base import AbstractAmbiguitySet, in_range, radius
+from .._validation import check_scalar, in_range
+from ._base import AbstractAmbiguitySet
 
 _NEWTON_MAX_ITER = 100
 
@@ -31,7 +32,7 @@ class Wasserstein(AbstractAmbiguitySet):
     theta: Float[Array, ""]
 
     def __init__(self, theta: Float[ArrayLike, ""]):
-        self.theta = radius("theta", theta)
+        self.theta = check_scalar("theta", theta)
 
     def is_nominal(self):
         return self.theta == 0
@@ -68,11 +69,11 @@ class Wasserstein(AbstractAmbiguitySet):
         return jnp.where(exact, nominal, cov), jnp.where(active, s, 1.0)
 
     def residual(self, cov, multiplier, direction, nominal):
-        r, q, _ = _oracle_residual(self.theta.astype(nominal.dtype), cov, multiplier, direction, nominal)
+        r, q, _ = oracle_residual(self.theta.astype(nominal.dtype), cov, multiplier, direction, nominal)
         return r, q
 
 
-def _oracle_residual(rho, cov, s, direction, nominal):
+def oracle_residual(rho, cov, s, direction, nominal):
     """The oracle's optimality system `(Σ − TΣ̂T, s² Tr(Σ̂(DT)²) − 1)` (or `s − 1` for an
     inactive set, `Tr D = 0`) and `T = (I − θsD)⁻¹` (`linalg.psd_inv`: its derivative is
     products, so Newton and implicit-derivative Jacobians batch)."""

@@ -22,8 +22,7 @@ from typing import ClassVar
 
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._validation import as_float_array, is_concrete
-from ._base import in_range
+from .._validation import as_float_array, in_range, is_concrete
 
 __all__ = [
     "AbstractWeight",
