@@ -3,7 +3,8 @@
 `jdrkf.tuning.fit`) vs a full grid (`jdrkf.tuning.grid_search`) vs random search, one
 scenario per paper, tuned on training runs and scored on held-out runs.
 
-Scenarios (each tunes three parameters jointly; the systems are the experiments' own):
+Scenarios (each tunes three parameters jointly; the problems are the registered experiments'
+tuning problems, `jdrkf.experiments.<module>.tuning_problems`, the ones `jdrkf tune` uses):
 
 - `wang-ye`: `DRKF(Wasserstein(θx), Wasserstein(θv), EpsContamination(ε))` on Wang & Ye's
   system with model uncertainty (α = 1) and 5 % outliers of magnitude 100; mean RMSE.
@@ -48,14 +49,12 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import json
 import os
 import platform
 import sys
 import time
-from collections.abc import Callable
 
 import numpy as np
 
@@ -81,167 +80,16 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-@dataclasses.dataclass
-class Scenario:
-    name: str
-    paper: str
-    description: str
-    names: tuple[str, ...]
-    start: tuple[float, ...]
-    bounds: list[tuple[float, float | None]]
-    axes: list[tuple[float, float, bool]]  # grid box per axis: (low, high, log-spaced)
-    loss: Callable  # loss(values_tuple, data) -> scalar
-    data: Callable  # data(key, runs) -> pytree
-    lr: float
-    metric: str
-
-
-# --------------------------------------------------------------------------- scenarios
-
-
-def _scenarios(quick: bool) -> dict[str, Scenario]:
-    import jax
-    import jax.numpy as jnp
-
-    import jdrkf
-    from jdrkf.experiments import (
-        chen_fusion,
-        jang,
-        li_variational,
-        wang_nonlinear,
-        wang_ye,
-    )
-    from jdrkf.sets import EpsContamination, MarginalKL, Wasserstein
-
-    def rmse(states, means):
-        return jnp.mean(jdrkf.metrics.rmse(states, means))
-
-    # Wang & Ye (2022): Wasserstein DR filter with ε-contamination outliers.
-    wy_model, wy_prior = wang_ye.nominal_model(), wang_ye.prior()
-
-    def wy_loss(v, tr):
-        flt = jdrkf.DRKF(state_set=Wasserstein(v[0]), noise_set=Wasserstein(v[1]), outliers=EpsContamination(v[2]), throw=False)
-        return rmse(tr.states, jax.vmap(lambda y: flt(wy_model, wy_prior, y).filtered_means)(tr.observations))
-
-    def wy_data(key, runs):
-        return wang_ye.scenario(key, runs, 1.0, True, 100 if quick else 200)
-
-    # Li et al.: STKF-AR1, measurement channels' initial ν, τ² and forgetting ρ.
-    li_model, li_prior = li_variational.torsion_model(), li_variational.torsion_prior()
-
-    def li_loss(v, tr):
-        flt = jdrkf.STKF_AR1(nu_y=v[0], tau2_y=v[1], rho_y=v[2], throw=False)
-        return rmse(tr.states, jax.vmap(lambda y: flt(li_model, li_prior, y).filtered_means)(tr.observations))
-
-    def li_data(key, runs):
-        return li_variational.torsion_scenario(key, "y3", runs, 100 if quick else 400)
-
-    # Chen et al.: marginal KL DR filter, one radius per sensor.
-    ch_model, ch_true, ch_prior = chen_fusion.scenario("paper")
-    ch_x0 = jdrkf.Gaussian(jnp.zeros(3), jnp.zeros((3, 3)))
-
-    def ch_loss(v, tr):
-        flt = jdrkf.MarginalDRKF(MarginalKL(jnp.stack(v)), throw=False)
-        means = jax.vmap(lambda y: flt(ch_model, ch_prior, y).filtered_means)(tr.observations)
-        return jnp.mean(jnp.sum((tr.states - means) ** 2, axis=-1))
-
-    def ch_data(key, runs):
-        return jdrkf.simulate(key, ch_true, ch_x0, 30 if quick else 100, runs)
-
-    # Wang (2022): DR particle filter on the growth model with the mismatched measurement.
-    gm = wang_nonlinear.growth_models()
-    g_prior = jdrkf.Gaussian(jnp.zeros(1), jnp.eye(1))
-    particles = 32 if quick else 100
-
-    def pf_loss(v, data):
-        tr, keys = data
-        flt = jdrkf.DRParticleFilter(particles, prior="wasserstein", prior_radius=v[0], likelihood="inflate", theta=v[1],
-                                     outlier="drop", outlier_threshold=v[2], throw=False)
-        means = jax.vmap(lambda y, k: flt(gm["nominal"], g_prior, y, k).filtered_means)(tr.observations, keys)
-        return rmse(tr.states, means)
-
-    def pf_data(key, runs):
-        ks, kf = jax.random.split(key)
-        return jdrkf.simulate(ks, gm["true"], g_prior, 30 if quick else 100, runs), jax.random.split(kf, runs)
-
-    # Jang et al.: steady-state DR filter in closed loop; EM nominals (5 outputs per run) scaled by s.
-    a, b, c = jang.lqr_system()
-    x0_law, _, _, qv, rv = jang.noise_laws("gaussian")
-    true_model = jdrkf.LinearModel(F=a, H=c, Q=qv * np.eye(4), R=rv * np.eye(2), B=b)
-    controller = jdrkf.LQRController.design(a, b, jang.LQR_Q, jang.LQR_R)
-    reference = jnp.asarray(jang.reference_trajectory())
-    j_prior = jdrkf.Gaussian(jnp.zeros(4), qv * jnp.eye(4))
-    w_law, v_law = jdrkf.GaussianNoise(qv * jnp.eye(4)), jdrkf.GaussianNoise(rv * jnp.eye(2))
-
-    def j_loss(v, data):
-        qs, rs, keys = data
-        flt = jdrkf.SteadyStateDRKF(v[0], v[1], throw=False)
-
-        def one(args):
-            q, r, key = args
-            model = jdrkf.LinearModel(F=a, H=c, Q=v[2] * q, R=v[2] * r, B=b)
-            res = jdrkf.closed_loop(key, flt, model, j_prior, controller, reference, true_model=true_model,
-                                    initial_state=x0_law, process_noise=w_law, measurement_noise=v_law)
-            return res.cost(jang.LQR_Q, jang.LQR_R)
-
-        return jnp.mean(jax.lax.map(one, (qs, rs, keys)))  # lax.map: one steady-state solve per run
-
-    @jax.jit
-    def j_em(key):
-        kx, kw, kv = jax.random.split(key, 3)
-        x = x0_law.sample(kx)
-        ws = jnp.sqrt(qv) * jax.random.normal(kw, (jang.NUM_EM_OUTPUTS, 4))
-        vs = jnp.sqrt(rv) * jax.random.normal(kv, (jang.NUM_EM_OUTPUTS, 2))
-        _, ys = jax.lax.scan(lambda x, wv: (a @ x + wv[0], c @ x + wv[1]), x, (ws, vs))
-        em = jdrkf.em_noise_covariances(a, c, ys, jnp.zeros(4), qv * jnp.eye(4))
-        return em.Q, em.R
-
-    def j_data(key, runs):
-        kem, kloop = jax.random.split(key)
-        qs, rs = jax.vmap(j_em)(jax.random.split(kem, runs))
-        return qs, rs, jax.random.split(kloop, runs)
-
-    return {
-        "wang-ye": Scenario(
-            "wang-ye", "Wang & Ye (2022)", "DRKF(Wasserstein(θx), Wasserstein(θv), EpsContamination(ε)), α = 1, 5 % outliers",
-            ("θx", "θv", "ε"), (0.1, 0.1, 0.05), [(0.0, None), (0.0, None), (0.0, 0.5)],
-            [(0.005, 2.0, True), (0.005, 2.0, True), (0.005, 0.3, True)], wy_loss, wy_data, 0.1, "mean RMSE"),
-        "li": Scenario(
-            "li", "Li et al.", "STKF_AR1 measurement channels: initial ν, τ², forgetting ρ; torsion case y3",
-            ("ν_y", "τ²_y", "ρ_y"), (100.0, 1.0, 0.99), [(0.0, None), (0.0, None), (0.0, 1.0)],
-            [(1.0, 300.0, True), (0.1, 10.0, True), (0.9, 0.999, False)], li_loss, li_data, 0.1, "mean RMSE"),
-        "chen": Scenario(
-            "chen", "Chen et al. (2025)", "MarginalDRKF(MarginalKL(c₁, c₂, c₃)), one KL radius per sensor",
-            ("c₁", "c₂", "c₃"), (0.05, 0.05, 0.05), [(0.0, None)] * 3,
-            [(1e-3, 0.5, True)] * 3, ch_loss, ch_data, 0.1, "mean squared error"),
-        "wang2022": Scenario(
-            "wang2022", "Wang (2022)", f"DRParticleFilter({particles}): Wasserstein prior radius, inflation θ, outlier threshold ε (drop)",
-            ("prior radius", "θ", "ε"), (0.1, 5.0, 1e-6), [(0.0, None), (0.0, None), (0.0, None)],
-            [(0.01, 3.0, True), (1.0, 20.0, True), (1e-9, 1e-2, True)], pf_loss, pf_data, 0.1, "mean RMSE"),
-        "jang": Scenario(
-            "jang", "Jang et al. (2025)", "SteadyStateDRKF(θx, θv) with EM nominals scaled by s; closed-loop LQR tracking",
-            ("θx", "θv", "s"), (0.1, 0.1, 1.0), [(0.0, None), (0.0, None), (0.0, None)],
-            [(0.01, 2.0, True), (0.01, 2.0, True), (0.3, 3.0, True)], j_loss, j_data, 0.1, "mean LQR cost"),
-    }
-
-
-# --------------------------------------------------------------------------- methods
-
-
-def _axis(lo, hi, logscale, k):
-    return np.geomspace(lo, hi, k) if logscale else np.linspace(lo, hi, k)
-
-
-def _median_time(fn, *args, repeats=3):
-    import jax
-
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+# Scenario: (registered experiment, filter label of its tuning problem, paper). The problems
+# (filter as a function of its parameters, bounds, grid box, data, loss) are the library's own,
+# `jdrkf.experiments.<module>.tuning_problems`, shared with `jdrkf tune`.
+SCENARIOS = {
+    "wang-ye": ("wang-ye-table3", "W-DRKF", "Wang & Ye (2022)"),
+    "li": ("li-torsion", "STKF-AR1", "Li et al."),
+    "chen": ("chen-fusion", "KL-MDRKF", "Chen et al. (2025)"),
+    "wang2022": ("wang-growth", "RPF", "Wang (2022)"),
+    "jang": ("jang-lqr", "SS-DRKF", "Jang et al. (2025)"),
+}
 
 
 def _local_minima(losses, k, dims):
@@ -259,125 +107,74 @@ def _local_minima(losses, k, dims):
     return int(count)
 
 
-def run_scenario(sc: Scenario, args, seed: int) -> dict:
-    import equinox as eqx
+def run_scenario(name: str, args, seed: int) -> dict:
     import jax
-    import jax.numpy as jnp
-    import optax
 
-    from jdrkf import tuning
+    from jdrkf.experiments import _tune
 
-    class Params(eqx.Module):
-        values: tuple
-
-    where = lambda p: p.values
+    experiment, label, paper = SCENARIOS[name]
+    sc = _tune.problems(experiment, args.quick)[label]
     key = jax.random.key(seed)
     t0 = time.perf_counter()
     # Held-out runs: `test_chunks` data sets of the training size from other keys (one compiled program for both).
     train = sc.data(jax.random.fold_in(key, 0), args.train_runs)
     tests = [sc.data(jax.random.fold_in(key, 1 + i), args.train_runs) for i in range(args.test_chunks)]
-    train_obj = lambda p: sc.loss(p.values, train)
-    loss_at = eqx.filter_jit(sc.loss)
-    vg_at = eqx.filter_jit(jax.value_and_grad(sc.loss))
-    start = tuple(jnp.asarray(x) for x in sc.start)
-    t_fwd = _median_time(loss_at, start, train)
-    t_vg = _median_time(vg_at, start, train)
+    ev = _tune.Evaluator(sc, train)
+    t_fwd, t_vg = ev.timing()
     ratio = t_vg / t_fwd
-    log(f"[{sc.name}] data + compile {time.perf_counter() - t0:.1f} s; forward {t_fwd * 1e3:.1f} ms, value-and-grad {t_vg * 1e3:.1f} ms ({ratio:.2f}×)")
-
-    def fwd(values):
-        return float(loss_at(tuple(jnp.asarray(x) for x in values), train))
+    log(f"[{name}] data + compile {time.perf_counter() - t0:.1f} s; forward {t_fwd * 1e3:.1f} ms, value-and-grad {t_vg * 1e3:.1f} ms ({ratio:.2f}×)")
 
     def test_error(values):
-        return float(np.mean([loss_at(tuple(jnp.asarray(x) for x in values), test) for test in tests]))
+        return float(np.mean([np.mean(ev.errors(values, test)) for test in tests]))
 
     # Diagnostics at the start: gradient vs central finite differences (relative step 1e-4).
-    _, g0 = vg_at(start, train)
+    _, g0 = ev.value_and_grad(sc.start)
     fd = []
     for i, x in enumerate(sc.start):
         h = 1e-4 * x
         up = [x + h if j == i else y for j, y in enumerate(sc.start)]
         dn = [x - h if j == i else y for j, y in enumerate(sc.start)]
-        fd.append((fwd(up) - fwd(dn)) / (2 * h))
-    g0 = np.asarray([float(g) for g in g0])
+        fd.append((ev.loss(up) - ev.loss(dn)) / (2 * h))
     fd = np.asarray(fd)
     fd_err = (np.abs(g0 - fd) / np.maximum(np.abs(fd), 1e-300)).tolist()
 
     # (a) gradient
-    t = time.perf_counter()
-    res = tuning.fit(Params(start), train_obj, where=where, bounds=sc.bounds, optimizer=optax.adam(sc.lr), steps=args.steps,
-                     tol=args.tol, patience=3, restarts=args.restarts, jitter=0.5, key=jax.random.fold_in(key, 2))
-    wall_grad = time.perf_counter() - t
-    costs, cum = [], 0.0  # per recorded iterate, in forward-equivalents
-    seq_params, seq_losses = [], []
-    for run in res.runs:
-        for i in range(len(run.losses)):
-            last_unconverged = (not run.converged) and i == len(run.losses) - 1
-            cum += 1.0 if last_unconverged else ratio
-            costs.append(cum)
-            seq_params.append(run.params[i])
-            seq_losses.append(run.losses[i])
-    cost_grad = cum
-    best_so_far = np.minimum.accumulate(np.where(np.isnan(seq_losses), np.inf, seq_losses))
-    change = [i for i in range(len(best_so_far)) if i == 0 or best_so_far[i] < best_so_far[i - 1]]
-    marks = sorted(set(change[:: max(1, len(change) // 10)]) | {change[-1]})
-    grad_curve = [(costs[i], test_error(seq_params[i])) for i in marks]  # at a change, iterate i is the best so far
-    grad_curve.append((costs[-1], grad_curve[-1][1]))
-    best_params = [float(x) for x in res.params[res.best_step]]
-    grad = {
-        "train": res.loss, "test": test_error(best_params), "params": best_params, "cost": cost_grad, "wall_s": wall_grad,
-        "steps": [len(r.losses) - 1 for r in res.runs], "converged": [r.converged for r in res.runs],
-        "start_losses": [float(r.losses[r.best_step]) for r in res.runs], "best_start": res.start, "best_step": res.best_step,
-        "curve": grad_curve,
-    }
-    log(f"[{sc.name}] gradient: train {res.loss:.5g}, held-out {grad['test']:.5g}, cost {cost_grad:.1f} fwd-eq, wall {wall_grad:.1f} s, params {best_params}")
+    g = _tune.tune_gradient(ev, ratio=ratio, steps=args.steps, tol=args.tol, restarts=args.restarts, key=jax.random.fold_in(key, 2))
+    grad = {"train": g.loss, "test": test_error(g.params), "params": g.params, "cost": g.cost, "wall_s": g.wall_s,
+            **g.extra, "curve": _tune.heldout_curve(g, test_error)}
+    log(f"[{name}] gradient: train {g.loss:.5g}, held-out {grad['test']:.5g}, cost {g.cost:.1f} fwd-eq, wall {g.wall_s:.1f} s, params {g.params}")
 
-    # (b) grids
-    # Grid sizes: those of --grid-k whose k³ forward passes fit in --grid-budget seconds (at least the smallest).
+    # (b) grids: those of --grid-k whose k³ forward passes fit in --grid-budget seconds (at least the smallest).
     ks = [k for k in args.grid_k if k**3 * t_fwd <= args.grid_budget] or [min(args.grid_k)]
     grids = []
     for k in ks:
-        axes = [_axis(lo, hi, lg, k) for lo, hi, lg in sc.axes]
-        rows = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes))
-        t = time.perf_counter()
-        gr = tuning.grid_search(Params(start), train_obj, where=where, grid=rows)
-        wall = time.perf_counter() - t
-        best = [float(x) for x in gr.grid[int(np.nanargmin(gr.losses))]]
-        finite = gr.losses[np.isfinite(gr.losses)]
+        gr = _tune.tune_grid(ev, k)
+        losses = gr.extra["losses"]
+        finite = losses[np.isfinite(losses)]
         grids.append({
-            "k": k, "evaluations": len(rows), "train": gr.loss, "test": test_error(best), "params": best, "wall_s": wall,
-            "local_minima": _local_minima(np.where(np.isfinite(gr.losses), gr.losses, np.inf), k, len(axes)),
+            "k": k, "evaluations": gr.evaluations, "train": gr.loss, "test": test_error(gr.params), "params": gr.params,
+            "wall_s": gr.wall_s, "local_minima": _local_minima(np.where(np.isfinite(losses), losses, np.inf), k, len(sc.names)),
             "spread": float(finite.max() / finite.min() - 1) if finite.size else float("nan"),
-            "failed": int(np.sum(~np.isfinite(gr.losses))),
+            "failed": int(np.sum(~np.isfinite(losses))),
         })
-        log(f"[{sc.name}] grid k={k}: train {gr.loss:.5g}, held-out {grids[-1]['test']:.5g}, wall {wall:.1f} s, params {best}")
+        log(f"[{name}] grid k={k}: train {gr.loss:.5g}, held-out {grids[-1]['test']:.5g}, wall {gr.wall_s:.1f} s, params {gr.params}")
 
     # (c) random search with the gradient's budget
-    rng = np.random.default_rng(seed)
-    count = max(1, round(cost_grad))
-    samples = np.stack([np.exp(rng.uniform(np.log(lo), np.log(hi), count)) if lg else rng.uniform(lo, hi, count)
-                        for lo, hi, lg in sc.axes], -1)
-    t = time.perf_counter()
-    r_losses = np.asarray([fwd(row) for row in samples])
-    wall_rand = time.perf_counter() - t
-    r_best = np.minimum.accumulate(np.where(np.isnan(r_losses), np.inf, r_losses))
-    r_change = [i for i in range(count) if i == 0 or r_best[i] < r_best[i - 1]]
-    rand_curve = [(i + 1, test_error(samples[i])) for i in r_change]
-    rand_curve.append((count, rand_curve[-1][1]))
-    ib = r_change[-1]
-    rand = {"train": float(r_losses[ib]), "test": rand_curve[-1][1], "params": samples[ib].tolist(), "cost": count, "wall_s": wall_rand, "curve": rand_curve}
-    log(f"[{sc.name}] random ({count}): train {rand['train']:.5g}, held-out {rand['test']:.5g}, wall {wall_rand:.1f} s")
+    rd = _tune.tune_random(ev, max(1, round(g.cost)), np.random.default_rng(seed))
+    rand = {"train": rd.loss, "test": test_error(rd.params), "params": rd.params, "cost": rd.evaluations, "wall_s": rd.wall_s,
+            "curve": _tune.heldout_curve(rd, test_error)}
+    log(f"[{name}] random ({rd.evaluations}): train {rd.loss:.5g}, held-out {rand['test']:.5g}, wall {rd.wall_s:.1f} s")
 
     ref = grids[-1]
     ok_err = grad["test"] <= GOAL_RATIO * ref["test"]
-    ok_cost = ref["evaluations"] / cost_grad >= GOAL_COST
+    ok_cost = ref["evaluations"] / g.cost >= GOAL_COST
     return {
-        "name": sc.name, "paper": sc.paper, "description": sc.description, "parameters": list(sc.names), "metric": sc.metric,
-        "start": list(sc.start), "bounds": [list(b) for b in sc.bounds], "grid_box": [list(a) for a in sc.axes],
-        "forward_s": t_fwd, "value_and_grad_s": t_vg, "vg_over_forward": ratio,
+        "name": name, "experiment": experiment, "filter": label, "paper": paper, "description": sc.description,
+        "parameters": list(sc.names), "metric": sc.metric, "start": list(sc.start), "bounds": [list(b) for b in sc.bounds],
+        "grid_box": [list(a) for a in sc.box], "forward_s": t_fwd, "value_and_grad_s": t_vg, "vg_over_forward": ratio,
         "start_gradient": g0.tolist(), "start_fd": fd.tolist(), "start_gradient_rel_err": fd_err,
         "gradient": grad, "grids": grids, "random": rand,
-        "goal": {"error_ratio": grad["test"] / ref["test"], "cost_ratio": ref["evaluations"] / cost_grad, "met": bool(ok_err and ok_cost)},
+        "goal": {"error_ratio": grad["test"] / ref["test"], "cost_ratio": ref["evaluations"] / g.cost, "met": bool(ok_err and ok_cost)},
         "wall_s": time.perf_counter() - t0,
     }
 
@@ -487,7 +284,7 @@ def plot(path, r) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="smoke run: small data, k ∈ {2, 3}, 6 steps, no restarts")
-    p.add_argument("--scenarios", nargs="+", default=["wang-ye", "li", "chen", "wang2022", "jang"])
+    p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--restarts", type=int, default=None, help="gradient restarts (default: 0 quick, 1 full)")
     p.add_argument("--grid-budget", type=float, default=None, help="seconds of forward passes allowed per grid (default 20 quick, 150 full)")
@@ -504,13 +301,12 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)  # the benchmark process, not the library
     t0 = time.perf_counter()
-    scenarios = _scenarios(args.quick)
-    unknown = set(args.scenarios) - set(scenarios)
+    unknown = set(args.scenarios) - set(SCENARIOS)
     if unknown:
-        raise SystemExit(f"unknown scenarios {sorted(unknown)}; choose from {list(scenarios)}")
+        raise SystemExit(f"unknown scenarios {sorted(unknown)}; choose from {list(SCENARIOS)}")
     results = []
     for i, name in enumerate(args.scenarios):
-        results.append(run_scenario(scenarios[name], args, args.seed + i))
+        results.append(run_scenario(name, args, args.seed + i))
     meta = {
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "device": device_summary(jax),
         "cpu": cpu_model(), "cores": os.cpu_count(), "machine": platform.machine(), "loadavg": loadavg(), "versions": versions(),

@@ -358,18 +358,34 @@ def grid_search(
     *,
     where: Callable[[AbstractFilter], Array | tuple[Array, ...]],
     grid: Float[ArrayLike, " G"] | Float[ArrayLike, "G k"],
+    chunk_size: int | None = None,
+    progress: bool = False,
 ) -> GridResult:
     """Evaluate `objective` with the leaves `where(filter)` set to each row of `grid`
-    (a 1-D grid sets every selected leaf to the same value) and return the best."""
+    (a 1-D grid sets every selected leaf to the same value) and return the best.
+
+    The grid is evaluated `chunk_size` points per compiled call (default: about a tenth
+    of the grid; the last chunk is padded and its padding discarded), one `lax.map` per
+    call, so a progress bar (`progress=True`, or a reporter installed by the caller)
+    shows the rate and time left."""
     leaves = _leaves(where, flt)
     grid = np.asarray(grid, dtype=np.float64)
     grid = np.repeat(grid[:, None], len(leaves), axis=1) if grid.ndim == 1 else grid
-    if grid.ndim != 2 or grid.shape[1] != len(leaves):
-        raise ValueError(f"grid must have shape (G,) or (G, {len(leaves)}), got {grid.shape}")
+    if grid.ndim != 2 or grid.shape[1] != len(leaves) or len(grid) == 0:
+        raise ValueError(f"grid must have shape (G,) or (G, {len(leaves)}) with G >= 1, got {grid.shape}")
+    size = len(grid)
+    chunk = -(-size // 10) if chunk_size is None else min(check_count("chunk_size", chunk_size), size)
 
     def set_(vals):
         return eqx.tree_at(lambda f: _select(where, f), flt, tuple(v.astype(leaf.dtype) for v, leaf in zip(vals, leaves, strict=True)))
 
-    losses = np.asarray(eqx.filter_jit(lambda g: jax.lax.map(lambda v: objective(set_(v)), g))(jnp.asarray(grid, leaves[0].dtype)))
+    evaluate = eqx.filter_jit(lambda g: jax.lax.map(lambda v: objective(set_(v)), g))
+    padded = np.concatenate([grid, np.repeat(grid[-1:], -size % chunk, axis=0)])
+    losses = []
+    with _progress.reporter(progress).phase(f"grid search ({size} points)", size, "point") as phase:
+        for lo in range(0, size, chunk):
+            losses.append(np.asarray(evaluate(jnp.asarray(padded[lo:lo + chunk], leaves[0].dtype))))
+            phase.update(min(chunk, size - lo))
+    losses = np.concatenate(losses)[:size]
     best = int(np.nanargmin(losses))
     return GridResult(filter=set_(jnp.asarray(grid[best], leaves[0].dtype)), loss=float(losses[best]), grid=grid, losses=losses)

@@ -37,3 +37,11 @@ def test_tiny_run_has_table_rows():
     assert {"CI", "KF", "KL-MDRKF", "MC-MDRKF", "CKF", "MC-MDRKF-grad", "KL-MDRKF-grad"} <= names
     assert all(np.isfinite(r.mean) for r in rep.rows)
     assert {r.metric for r in rep.rows} == {f"MSE {c} [paper]" for c in cf.COMPONENTS}
+
+
+def test_grid_profile_flags_a_minimum_at_the_grid_end():
+    grid = np.array([0.1, 0.2, 0.3])
+    low = cf.grid_profile("[paper] X", "g", grid, np.array([1.0, 1.5, 2.0]))
+    assert "lower end" in low and "100.0% above" in low and "0.1: 1" in low
+    assert "upper end" in cf.grid_profile("X", "g", grid, np.array([3.0, 2.0, 1.0]))
+    assert "inside the grid" in cf.grid_profile("X", "g", grid, np.array([3.0, 1.0, 2.0]))

@@ -340,3 +340,206 @@ def test_quick_options_are_options_of_the_run_and_shrink_the_horizon():
             default = params["num_steps"].default
             assert "num_steps" in e.quick, e.name
             assert default is None or e.quick["num_steps"] < default, e.name
+
+
+# --------------------------------------------------------------------------- `jdrkf tune`
+
+_TRUE_F = 0.9
+
+
+def _numpy_kf_rmse(values, states, observations):
+    """Per-run RMSE of a scalar Kalman filter in NumPy (the oracle): `x_k = 0.9 x_{k−1} + w`,
+    `y_k = x_k + v`, nominal `Q, R, P₀ = values`, `x̂₀ = 0`."""
+    q, r, p0 = values
+    out = []
+    for xs, ys in zip(states, observations):
+        m, p, err2 = 0.0, p0, []
+        for x, y in zip(xs[:, 0], ys[:, 0]):
+            m, p = _TRUE_F * m, _TRUE_F**2 * p + q
+            gain = p / (p + r)
+            m, p = m + gain * (y - m), (1 - gain) * p
+            err2.append((x - m) ** 2)
+        out.append(np.sqrt(np.mean(err2)))
+    return np.asarray(out)
+
+
+def _fake_tuning_experiment(monkeypatch, name="fake-tune"):
+    """A registered experiment with a cheap tuning problem: the Kalman filter of a scalar model
+    whose nominal Q, R and P₀ are tuned (the truth: Q = R = P₀ = 1); its run records `params`."""
+    from jdrkf.experiments._tune import TuningProblem
+
+    true = jdrkf.LinearModel(F=np.array([[_TRUE_F]]), H=np.eye(1), Q=np.eye(1), R=np.eye(1))
+    seen = {}
+
+    def data(key, runs):
+        return jdrkf.simulate(key, true, jdrkf.Gaussian(np.zeros(1), np.eye(1)), 25, runs)
+
+    def make(values):
+        return jdrkf.KalmanFilter(throw=False)
+
+    def errors(values, tr):
+        model = jdrkf.LinearModel(F=np.array([[_TRUE_F]]), H=np.eye(1), Q=values[0] * np.eye(1), R=values[1] * np.eye(1))
+        prior = jdrkf.Gaussian(np.zeros(1), values[2] * np.eye(1))
+        return jdrkf.metrics.rmse(tr.states, jax.vmap(lambda y: jdrkf.KalmanFilter()(model, prior, y).filtered_means)(tr.observations))
+
+    problem = TuningProblem("KF", "Kalman filter with nominal Q, R, P0", ("q", "r", "p0"), (0.2, 5.0, 1.0),
+                            ((0.0, None), (0.0, 20.0), (0.0, None)), ((0.05, 5.0, True), (0.05, 10.0, True), (0.1, 10.0, True)),
+                            data, errors, "mean RMSE", make)
+
+    def run(runs, seed, progress=False, curves=False, params=None):
+        seen["params"] = params
+        return jdrkf.experiments.Report(name, seed, [jdrkf.experiments.Row.from_values("KF", "rmse", None, [1.0, 2.0])])
+
+    exp = jdrkf.experiments.Experiment(name, "a fake experiment with a tuning problem", 5, run,
+                                       tuning=lambda quick: {"KF": problem})
+    monkeypatch.setitem(jdrkf.experiments.EXPERIMENTS, name, exp)
+    return problem, seen
+
+
+def _check_tune_json(path, problem, method, runs, seed):
+    data = json.loads(path.read_text())
+    assert data["experiment"] == "fake-tune" and data["method"] == method and data["runs"] == runs
+    (f,) = data["filters"]
+    assert {"filter", "parameters", "start", "bounds", "tuned", "train", "start_train", "heldout", "start_heldout",
+            "cost", "evaluations", "curve"} <= set(f)
+    tuned = np.asarray(f["tuned"])
+    for x, (lo, hi) in zip(tuned, problem.bounds):
+        assert lo < x and (hi is None or x < hi)
+    assert not np.allclose(tuned, problem.start)  # the method moved away from the start
+    # Oracle: the reported training and held-out errors from a NumPy Kalman filter on the same runs.
+    key = jax.random.key(seed)
+    train, test = (problem.data(jax.random.fold_in(key, i), runs) for i in (0, 1))
+    np.testing.assert_allclose(f["train"], _numpy_kf_rmse(tuned, train.states, train.observations).mean(), rtol=1e-8)
+    held = _numpy_kf_rmse(tuned, test.states, test.observations)
+    np.testing.assert_allclose(f["heldout"]["mean"], held.mean(), rtol=1e-8)
+    lo, hi = f["heldout"]["ci95"]
+    assert np.isfinite([lo, hi]).all() and lo < held.mean() < hi
+    np.testing.assert_allclose(f["start_heldout"]["mean"], _numpy_kf_rmse(problem.start, test.states, test.observations).mean(), rtol=1e-8)
+    assert f["train"] < f["start_train"]  # the start (Q 5× too small, R 5× too large) is far from the truth
+    assert all(np.isfinite(c).all() for c in f["curve"])
+    return f
+
+
+def test_tune_gradient_end_to_end_json_plot_and_reproduce_params(tmp_path, capsys, monkeypatch):
+    problem, seen = _fake_tuning_experiment(monkeypatch)
+    code = cli.main(["tune", "fake-tune", "--method", "grad", "--budget", "30", "--runs", "4", "--seed", "3",
+                     "--out", str(tmp_path), "--no-progress"])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "| KF (start) | q, r, p0 | 0.2, 5, 1 |" in out and "| KF (grad) | q, r, p0 |" in out
+    f = _check_tune_json(tmp_path / "tune-fake-tune-grad.json", problem, "grad", 4, 3)
+    # the budget, unless one step (a value-and-gradient and a forward) costs more
+    assert f["cost"] <= max(30, 1 + f["vg_over_forward"]) + 1e-9 and f["evaluations"] >= 2
+    assert (tmp_path / "tune-fake-tune-grad.png").stat().st_size > 5_000
+    # reproduce --params hands the tuned values to the experiment's run
+    assert cli.main(["reproduce", "fake-tune", "--params", str(tmp_path / "tune-fake-tune-grad.json"), "--no-progress"]) == 0
+    np.testing.assert_array_equal(seen["params"]["KF"], f["tuned"])
+
+
+def test_tune_grid_and_random(tmp_path, capsys, monkeypatch):
+    problem, _ = _fake_tuning_experiment(monkeypatch)
+    assert cli.main(["tune", "fake-tune", "--method", "grid", "--budget", "8", "--runs", "3", "--out", str(tmp_path)]) == 0
+    f = _check_tune_json(tmp_path / "tune-fake-tune-grid.json", problem, "grid", 3, 0)
+    # k = 2 points per axis: the best of the 8 corners of the box, by the NumPy oracle.
+    assert f["k"] == 2 and f["evaluations"] == 8
+    key = jax.random.key(0)
+    train = problem.data(jax.random.fold_in(key, 0), 3)
+    corners = [np.asarray(c) for c in np.array(np.meshgrid(*[[lo, hi] for lo, hi, _ in problem.box], indexing="ij")).reshape(3, -1).T]
+    losses = [_numpy_kf_rmse(c, train.states, train.observations).mean() for c in corners]
+    np.testing.assert_allclose(f["tuned"], corners[int(np.argmin(losses))], rtol=1e-12)
+    assert cli.main(["tune", "fake-tune", "--method", "random", "--budget", "5", "--runs", "3", "--out", str(tmp_path)]) == 0
+    f = _check_tune_json(tmp_path / "tune-fake-tune-random.json", problem, "random", 3, 0)
+    assert f["evaluations"] == 5 and f["cost"] == 5
+    for x, (lo, hi, _) in zip(f["tuned"], problem.box):
+        assert lo <= x <= hi
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--budget", "0.5"], "argument --budget: must be a finite number at least 1, got 0.5"),
+        (["--budget", "inf"], "argument --budget: must be a finite number at least 1"),
+        (["--budget", "x"], "argument --budget: expected a number, got 'x'"),
+        (["--method", "adam"], "argument --method: invalid choice"),
+        (["--runs", "1"], "argument --runs: must be at least 2, got 1"),
+    ],
+)
+def test_tune_bad_arguments_fail_at_once(args, needle, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["tune", "wang-ye-table3", *args])
+    _one_line_error(capsys, e.value.code, needle)
+
+
+def test_tune_and_params_errors(tmp_path, capsys, monkeypatch):
+    _fake_tuning_experiment(monkeypatch)
+    # an experiment without a tuning problem: the error lists those with one
+    _one_line_error(capsys, cli.main(["tune", "wang-ye-breakdown"]), "'wang-ye-breakdown' has no tuning problem",
+                    "chen-fusion", "wang-ye-table3", "li-torsion", "jang-lqr", "wang-growth")
+    _one_line_error(capsys, cli.main(["tune", "no-such-experiment"]), "unknown experiment 'no-such-experiment'")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    _one_line_error(capsys, cli.main(["tune", "fake-tune", "--out", str(blocker)]), "cannot write --out")
+    # --params: not a tune result, another experiment's, an experiment whose run takes none, an unknown filter
+    _one_line_error(capsys, cli.main(["reproduce", "fake-tune", "--params", str(blocker)]), "not a result of `jdrkf tune`")
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"experiment": "wang-ye-table1", "filters": [{"filter": "MKF", "tuned": [1.0, 1.0, 0.1]}]}))
+    _one_line_error(capsys, cli.main(["reproduce", "fake-tune", "--params", str(other)]), "tuned for 'wang-ye-table1', not 'fake-tune'")
+    _one_line_error(capsys, cli.main(["reproduce", "chen-fusion", "--params", str(other)]), "tuned for 'wang-ye-table1'")
+    other.write_text(json.dumps({"experiment": "chen-fusion", "filters": [{"filter": "KL-MDRKF", "tuned": [0.1, 0.1, 0.1]}]}))
+    _one_line_error(capsys, cli.main(["reproduce", "chen-fusion", "--params", str(other)]), "'chen-fusion' takes no tuned parameters", "wang-ye-table3")
+    other.write_text(json.dumps({"experiment": "fake-tune", "filters": [{"filter": "UKF", "tuned": [1.0, 1.0, 1.0]}]}))
+    _one_line_error(capsys, cli.main(["reproduce", "fake-tune", "--params", str(other)]), "cannot use tuned parameters of 'UKF'")
+
+
+@pytest.mark.slow  # about a minute: compiles the DR filters' solvers and their derivatives
+def test_tune_wang_ye_quick_then_reproduce_with_tuned_radii(tmp_path, capsys):
+    assert cli.main(["tune", "wang-ye-table3", "--quick", "--method", "grad", "--budget", "15", "--runs", "3",
+                     "--out", str(tmp_path), "--no-progress"]) == 0
+    data = json.loads((tmp_path / "tune-wang-ye-table3-grad.json").read_text())
+    problems = jdrkf.experiments.wang_ye.tuning_problems(1.0, True, quick=True)
+    assert [f["filter"] for f in data["filters"]] == ["W-DRKF", "MKF"]
+    for f in data["filters"]:
+        p = problems[f["filter"]]
+        assert np.isfinite(f["heldout"]["mean"]) and np.isfinite(f["train"])
+        for x, (lo, hi) in zip(f["tuned"], p.bounds):
+            assert lo < x and (hi is None or x < hi)
+        assert not np.allclose(f["tuned"], p.start)
+        assert f["train"] <= f["start_train"]
+    capsys.readouterr()
+    assert cli.main(["reproduce", "wang-ye-table3", "--runs", "2", "--quick", "--no-progress",
+                     "--params", str(tmp_path / "tune-wang-ye-table3-grad.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| W-DRKF-params | rmse |" in out and "| MKF-params | rmse |" in out
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--distributed", "--coordinator", "127.0.0.1:1234"],
+         "--num-processes and --process-id must be given with --coordinator (a manual launch)"),
+        (["--distributed", "--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"],
+         "--process-id must be below --num-processes (2), got 2"),
+        (["--coordinator", "h:1", "--num-processes", "2", "--process-id", "0"],
+         "--coordinator, --num-processes, --process-id only apply with --distributed"),
+    ],
+)
+def test_distributed_options_are_checked_before_starting(args, needle, capsys, no_compute, monkeypatch):
+    def boom(**kwargs):
+        raise _Computed("the CLI started the distributed runtime before rejecting its arguments")
+
+    monkeypatch.setattr(jax.distributed, "initialize", boom)
+    with pytest.raises(SystemExit) as e:
+        cli.main(["reproduce", "wang-ye-table3", *args])
+    _one_line_error(capsys, e.value.code, needle)
+
+
+def test_distributed_start_failure_is_one_line(capsys, no_compute, monkeypatch):
+    def fail(**kwargs):
+        assert kwargs == {}  # no --coordinator: JAX's cluster detection
+        raise ValueError("coordinator_address should be defined.")
+
+    monkeypatch.setattr(jax.distributed, "initialize", fail)
+    _one_line_error(capsys, cli.main(["reproduce", "wang-ye-table3", "--distributed"]),
+                    "--distributed: jax.distributed.initialize() failed: coordinator_address should be defined;",
+                    "pass --coordinator HOST:PORT --num-processes N --process-id I")

@@ -68,6 +68,40 @@ def test_grid_search_finds_the_minimum_of_its_grid(objective):
     assert float(res.filter.state_set.theta2) == grid[int(np.argmin(direct))]
 
 
+def test_grid_search_in_padded_chunks_reports_every_point(objective):
+    """Chunks of 3 over 7 points (the last chunk padded): same losses as the direct
+    evaluation, and the installed reporter sees all 7 points in one phase with a total."""
+    from jdrkf import _progress
+
+    grid = np.linspace(1.0, 1.12, 7)
+    seen = []
+
+    class Recorder:
+        def phase(self, name, total=None, unit="it"):
+            import contextlib
+
+            @contextlib.contextmanager
+            def cm():
+                seen.append([name, total, 0])
+
+                class P:
+                    def update(self, n=1):
+                        seen[-1][2] += n
+
+                yield P()
+
+            return cm()
+
+    with _progress.reporting(Recorder()):
+        res = tuning.grid_search(wang_ye.mkf(), objective, where=lambda f: (f.state_set.theta2, f.noise_set.theta2), grid=grid, chunk_size=3)
+    direct = [float(objective(wang_ye.mkf(g))) for g in grid]
+    np.testing.assert_allclose(res.losses, direct, rtol=1e-10)
+    assert res.losses.shape == (7,)
+    assert seen == [["grid search (7 points)", 7, 7]]
+    with pytest.raises(ValueError, match="chunk_size"):
+        tuning.grid_search(wang_ye.mkf(), objective, where=lambda f: f.state_set.theta2, grid=grid, chunk_size=0)
+
+
 def test_sigmoid_bounds_and_bad_arguments(objective):
     flt = jdrkf.DRKF(state_set=Moment(1.02), noise_set=Moment(1.02), outliers=EpsContamination(0.05))
     res = tuning.fit(flt, objective, where=lambda f: f.outliers.eps, bounds=(0.0, 0.5), steps=3)

@@ -1,4 +1,5 @@
-"""Paper reproductions, one module per paper, registered by name for `jdrkf reproduce`."""
+"""Paper reproductions, one module per paper, registered by name for `jdrkf reproduce`; those
+with a `TuningProblem` also for `jdrkf tune`."""
 
 from . import (
     chen_fusion as chen_fusion,
@@ -21,3 +22,4 @@ from ._registry import (
     get as get,
     register as register,
 )
+from ._tune import TuningProblem as TuningProblem

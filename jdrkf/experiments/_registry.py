@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -296,7 +297,9 @@ class Experiment:
     `scenario`, `metric` (with units) and `legend` (filter label → name, beyond the shared
     `GLOSSARY`) head the report. `quick` holds the `--quick` setting: `"runs"` and any
     keyword options of `run` that shrink the problem. `timing` is the measured time
-    (`TIMINGS`, machine `MEASURED_ON`), `None` if not measured."""
+    (`TIMINGS`, machine `MEASURED_ON`), `None` if not measured. `tuning(quick)`, if given,
+    returns the experiment's tuning problems `{filter label: TuningProblem}` (`jdrkf tune`);
+    a `run` with a `params` argument (`{filter label: tuned values}`) also evaluates those."""
 
     name: str
     description: str
@@ -306,6 +309,18 @@ class Experiment:
     metric: str = ""
     legend: Mapping[str, str] = dataclasses.field(default_factory=dict)
     quick: Mapping[str, Any] = dataclasses.field(default_factory=lambda: {"runs": 4})
+    tuning: Callable[[bool], Mapping[str, Any]] | None = None
+
+    @property
+    def takes_params(self) -> bool:
+        """Whether `reproduce(params=...)` can add filters with tuned parameters."""
+        return self.tuning is not None and "params" in inspect.signature(self.run).parameters
+
+    def check_takes_params(self) -> None:
+        """`ValueError` naming the experiments that do, unless this one `takes_params`."""
+        if not self.takes_params:
+            raise ValueError(f"experiment {self.name!r} takes no tuned parameters; experiments that do: "
+                             f"{', '.join(sorted(n for n, e in EXPERIMENTS.items() if e.takes_params))}")
 
     @property
     def timing(self) -> Timing | None:
@@ -320,12 +335,17 @@ class Experiment:
         return ("est. " if t.estimated and not quick else "") + _duration(seconds)
 
     def reproduce(self, runs: int | None = None, seed: int = 0, *, quick: bool = False, progress: bool = False,
-                  curves: bool = False, settings: Mapping[str, Any] | None = None) -> Report:
+                  curves: bool = False, settings: Mapping[str, Any] | None = None,
+                  params: Mapping[str, tuple[float, ...]] | None = None) -> Report:
         """Run the experiment (`runs=None`: the default, or the quick run count) and fill
         the report's header; `settings` adds entries to its run settings. `progress`:
         report the phases as bars on stderr (needs `tqdm`), unless a reporter is
-        installed (`jdrkf._progress.reporting`), which then gets them."""
+        installed (`jdrkf._progress.reporting`), which then gets them. `params`: tuned
+        values per filter label (from `jdrkf tune`), added as filters `<label>-params`."""
         options = dict(self.quick) if quick else {}
+        if params:
+            self.check_takes_params()
+            options["params"] = dict(params)
         quick_runs = options.pop("runs", self.default_runs)
         runs = (quick_runs if quick else self.default_runs) if runs is None else runs
         with _progress.reporting(_progress.reporter(progress)) as reporter, \

@@ -42,6 +42,7 @@ from ..filters import (
     theta_max,
 )
 from ._registry import Experiment, Report, Row, Sweep, register
+from ._tune import TuningProblem
 
 # ---------------------------------------------------------------------------- convergence
 
@@ -344,6 +345,39 @@ def run_lqr(runs: int, seed: int, progress: bool = False, curves: bool = False, 
     return report
 
 
+def tuning_problems(quick: bool = False) -> dict[str, TuningProblem]:
+    """`SS-DRKF(θx, θv)` in closed loop (Gaussian setting) with the per-run EM nominal
+    covariances multiplied by a tuned scale `s`; objective: mean closed-loop LQR cost.
+    (`quick` changes nothing here: the horizon is the paper's 50 steps.)"""
+    a, b, c = lqr_system()
+    x0_law, w_law, v_law, prior = _laws("gaussian")
+    true_model = _true_model("gaussian")
+    controller = LQRController.design(a, b, LQR_Q, LQR_R)
+    reference = jnp.asarray(reference_trajectory())
+
+    def data(key, runs):
+        kem, kloop = jax.random.split(key)
+        qs, rs = _nominal_models(kem, "gaussian", runs)
+        return qs, rs, jax.random.split(kloop, runs)
+
+    def errors(values, data):
+        flt = SteadyStateDRKF(values[0], values[1], throw=False)
+
+        def one(args):
+            q, r, key = args
+            model = LinearModel(F=a, H=c, Q=values[2] * q, R=values[2] * r, B=b)
+            res = closed_loop(key, flt, model, prior, controller, reference, true_model=true_model, initial_state=x0_law,
+                              process_noise=w_law, measurement_noise=v_law)
+            return res.cost(LQR_Q, LQR_R)
+
+        return jax.lax.map(one, data)  # one run after another: each run's steady-state solve is its own
+
+    return {"SS-DRKF": TuningProblem(
+        "SS-DRKF", "SteadyStateDRKF(θx, θv) with EM nominals scaled by s; closed-loop LQR tracking", ("θx", "θv", "s"),
+        (0.1, 0.1, 1.0), ((0.0, None),) * 3, ((0.01, 2.0, True), (0.01, 2.0, True), (0.3, 3.0, True)), data, errors,
+        "mean closed-loop LQR cost")}
+
+
 register(Experiment(
     name="jang-convergence",
     description="Jang et al. (steady-state Wasserstein DRKF), Fig. 1: θ_max and convergence of the DR Riccati recursion to the steady state (2-D benchmark, random systems).",
@@ -357,4 +391,5 @@ register(Experiment(
     default_runs=200,
     run=run_lqr,
     quick={"runs": 4, "train_runs": 4, "settings": ("gaussian",)},
+    tuning=tuning_problems,
 ))

@@ -48,6 +48,7 @@ from ..filters._base import DEFAULT_OUTPUTS, with_outputs
 from ..filters._reweighted import RBKF, STKF, STKF_AR1, VBKF
 from ..sets._weights import Barron, GaussianKernel, PseudoHuber
 from ._registry import Experiment, Report, Row, register
+from ._tune import TuningProblem
 
 DT = 0.01
 NUM_STEPS = 2000  # torsion horizon (20 s)
@@ -529,12 +530,35 @@ def run_identity(runs: int, seed: int, progress: bool = False, curves: bool = Fa
     return report
 
 
+def tuning_problems(quick: bool = False) -> dict[str, TuningProblem]:
+    """`STKF-AR1` (Algorithm 2) on torsion case y3: the measurement channels' initial `ν`,
+    `τ²` and forgetting `ρ`, tuned jointly on the mean RMSE (100 steps quick, 400 full)."""
+    model, prior = torsion_model(), torsion_prior()
+    num_steps = 100 if quick else 400
+
+    def data(key, runs):
+        return torsion_scenario(key, "y3", runs, num_steps)
+
+    def make(values):
+        return STKF_AR1(nu_y=values[0], tau2_y=values[1], rho_y=values[2], throw=False)
+
+    def errors(values, tr):
+        flt = make(values)
+        return metrics.rmse(tr.states, jax.vmap(lambda y: flt(model, prior, y).filtered_means)(tr.observations))
+
+    return {"STKF-AR1": TuningProblem(
+        "STKF-AR1", "STKF_AR1 measurement channels: initial ν, τ², forgetting ρ; torsion case y3", ("ν_y", "τ²_y", "ρ_y"),
+        (100.0, 1.0, 0.99), ((0.0, None), (0.0, None), (0.0, 1.0)), ((1.0, 300.0, True), (0.1, 10.0, True), (0.9, 0.999, False)),
+        data, errors, f"mean RMSE over {num_steps}-step runs", make)}
+
+
 register(Experiment(
     name="li-torsion",
     description="Li et al. (Variational Robust KFs), Example 4 / Table IV: 1-DOF torsion, 3 complex noise cases; per-state RMSE, T=2000.",
     default_runs=200,
     run=run_torsion,
     quick={"runs": 4, "num_steps": 1300},
+    tuning=tuning_problems,
 ))
 register(Experiment(
     name="li-identity",

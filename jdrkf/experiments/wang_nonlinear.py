@@ -50,11 +50,13 @@ import numpy as np
 
 from .. import metrics
 from .._gaussian import Gaussian
-from .._nonlinear import NonlinearModel, _simulate_nonlinear
+from .._nonlinear import NonlinearModel
+from .._simulate import simulate
 from ..filters._dr_particle import DRParticleFilter
 from ..filters._particle import BootstrapPF
 from ..filters._unscented import EnsembleKF, UnscentedKF
 from ._registry import Experiment, Report, Row, Sweep, register
+from ._tune import TuningProblem
 
 # ----------------------------------------------------------------------------- growth model
 
@@ -128,7 +130,7 @@ def _run_batch(flt, model, prior, ys, keys):
 def _protocol_data(key, true_model, prior, num_steps, runs, protocol):
     """States and observations for a protocol: `honest` simulates `runs` trajectories,
     `authors` one (broadcast)."""
-    traj = _simulate_nonlinear(key, true_model, prior, num_steps, runs if protocol == "honest" else 1)
+    traj = simulate(key, true_model, prior, num_steps, runs if protocol == "honest" else 1)
     if protocol == "honest":
         return traj.states, traj.observations
     return jnp.broadcast_to(traj.states[0], (runs,) + traj.states.shape[1:]), traj.observations[0]
@@ -218,7 +220,7 @@ def run_methods(runs: int = 100, seed: int = 0, progress: bool = False, curves: 
     t0 = time.perf_counter()
     # (a) non-additive measurement noise.
     true = NonlinearModel(_growth_f_general, _h_inside, q, r, additive=False, state_dim=1, obs_dim=1)
-    traj = _simulate_nonlinear(jax.random.fold_in(key, 0), true, _point_mass(1), GROWTH_STEPS, runs)
+    traj = simulate(jax.random.fold_in(key, 0), true, _point_mass(1), GROWTH_STEPS, runs)
     keys = jax.random.split(jax.random.fold_in(key, 1), runs)
     # Var[(x + v)²/20 | x] = (4x² + 2)/400: the PF's additive R is its average over the simulated states.
     r_add = float(np.mean((4 * np.asarray(traj.states) ** 2 + 2) / 400))
@@ -233,7 +235,7 @@ def run_methods(runs: int = 100, seed: int = 0, progress: bool = False, curves: 
     # (b) measurement outliers.
     true = NonlinearModel(growth_f, growth_h, q, r, measurement_noise=OutlierNoise(r, OUTLIER_P, OUTLIER_MAGNITUDE))
     nominal = growth_models()["nominal"]
-    traj = _simulate_nonlinear(jax.random.fold_in(key, 2), true, _point_mass(1), GROWTH_STEPS, runs)
+    traj = simulate(jax.random.fold_in(key, 2), true, _point_mass(1), GROWTH_STEPS, runs)
     filters = {
         "PF": _pf(particles),
         "RPF θ=5 (gate 1e-6, authors)": _rpf(particles),
@@ -341,8 +343,38 @@ def run_tracking(runs: int = 100, seed: int = 0, progress: bool = False, curves:
     return Report("wang-tracking", seed, rows, notes, all_curves, {}, curves_ylabel="position RMSE (m)")
 
 
+def tuning_problems(quick: bool = False) -> dict[str, TuningProblem]:
+    """`RPF`, the DR particle filter on the growth model with the mismatched measurement:
+    Wasserstein prior radius (Method 1), likelihood inflation θ (Method 3) and outlier
+    threshold ε (Method 6, "drop"), tuned jointly on the mean RMSE (30-step runs and 32
+    particles quick, 100 and 100 full). Each run has a fixed key (common random numbers);
+    resampling is differentiated by the stop-gradient score estimator."""
+    models = growth_models()
+    prior = Gaussian(jnp.zeros(1), jnp.eye(1))
+    num_steps, particles = (30, 32) if quick else (100, 100)
+
+    def data(key, runs):
+        ks, kf = jax.random.split(key)
+        return simulate(ks, models["true"], prior, num_steps, runs), jax.random.split(kf, runs)
+
+    def make(values):
+        return DRParticleFilter(particles, prior="wasserstein", prior_radius=values[0], likelihood="inflate", theta=values[1],
+                                outlier="drop", outlier_threshold=values[2], throw=False)
+
+    def errors(values, data):
+        tr, keys = data
+        flt = make(values)
+        means = jax.vmap(lambda y, k: flt(models["nominal"], prior, y, k).filtered_means)(tr.observations, keys)
+        return metrics.rmse(tr.states, means)
+
+    return {"RPF": TuningProblem(
+        "RPF", f"DRParticleFilter({particles}): Wasserstein prior radius, inflation θ, outlier threshold ε (drop)",
+        ("prior radius", "θ", "ε"), (0.1, RPF_THETA, GATE), ((0.0, None),) * 3,
+        ((0.01, 3.0, True), (1.0, 20.0, True), (1e-9, 1e-2, True)), data, errors, f"mean RMSE over {num_steps}-step runs", make)}
+
+
 register(Experiment("wang-growth", "Wang 2022 Tables I-II, Fig. 3: PF, UKF and DR particle filter on the growth model", 100, run_growth,
-                    quick={"runs": 4, "particles": (50, 200), "thetas": (2.5, 5.0)}))
+                    quick={"runs": 4, "particles": (50, 200), "thetas": (2.5, 5.0)}, tuning=tuning_problems))
 register(Experiment("wang-methods", "Wang 2022 Methods 5-7: DR particle filter under non-additive measurement noise and outliers", 100, run_methods,
                     quick={"runs": 4, "particles": 50}))
 register(Experiment("wang-tracking", "Wang 2022 Table III: range/bearing tracking from a moving sensor with positioning error", 100, run_tracking,

@@ -9,6 +9,8 @@ System (Sec. VII): `F_k^real = F + [[0, α Δ_k], [0, 0]]`, `Δ_k ~ U[−1, 1]` 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -21,8 +23,9 @@ from .._montecarlo import Clairvoyant, montecarlo
 from .._noise import OutlierNoise, UniformPerturbation
 from .._simulate import simulate
 from ..filters import DRKF, HuberKF, KalmanFilter, TauKF, WassersteinKF
-from ..sets import EpsContamination, Moment
+from ..sets import EpsContamination, Moment, Wasserstein
 from ._registry import Experiment, Report, Row, register
+from ._tune import TuningProblem
 
 NUM_STEPS = 1000
 OUTLIER_PROB = 0.05
@@ -33,6 +36,9 @@ EPS, HUBER_K, TAU_C, WKF_RHO, MKF_THETA2 = 0.05, 1.4, 1.5e-4, 0.1, 1.02
 # Tuned MKF: θ₂ fitted by Adam on TRAIN_RUNS runs simulated with a key independent of the
 # evaluation runs, starting from TUNE_START.
 TRAIN_RUNS, TUNE_STEPS, TUNE_START = 16, 40, 1.05
+
+# `jdrkf tune`: horizon of the training and held-out runs (full, quick).
+TUNING_STEPS = (200, 100)
 
 # Paper numbers (RMSE, one episode each): Table I (α=1, no outliers), II (α=0, outliers), III (both).
 PAPER = {
@@ -105,8 +111,43 @@ def tune_mkf(key, alpha: float, outliers: bool, runs: int = TRAIN_RUNS, steps: i
     )
 
 
+def tuning_problems(alpha: float, outliers: bool, quick: bool = False) -> dict[str, TuningProblem]:
+    """Three parameters tuned jointly per filter, on the mean RMSE of runs of the scenario
+    (`TUNING_STEPS` steps): `W-DRKF`, `DRKF(Wasserstein(θx), Wasserstein(θv),
+    EpsContamination(ε))`, and `MKF`, moment sets with separate `θ₂ₓ`, `θ₂ᵥ` and Huber's
+    `ε` (its clipping point `k` follows from `ε`)."""
+    model, p0 = nominal_model(), prior()
+    num_steps = TUNING_STEPS[quick]
+
+    def data(key, runs):
+        return scenario(key, runs, alpha, outliers, num_steps)
+
+    def rmse_of(make):
+        def errors(values, tr):
+            flt = make(values)
+            return metrics.rmse(tr.states, jax.vmap(lambda y: flt(model, p0, y).filtered_means)(tr.observations))
+
+        return errors
+
+    def wdrkf(v):
+        return DRKF(state_set=Wasserstein(v[0]), noise_set=Wasserstein(v[1]), outliers=EpsContamination(v[2]), throw=False)
+
+    def moment(v):
+        return DRKF(state_set=Moment(v[0]), noise_set=Moment(v[1]), outliers=EpsContamination(v[2]), throw=False)
+
+    metric = f"mean RMSE over {num_steps}-step runs"
+    return {
+        "W-DRKF": TuningProblem("W-DRKF", "DRKF(Wasserstein(θx), Wasserstein(θv), EpsContamination(ε))", ("θx", "θv", "ε"),
+                                (0.1, 0.1, EPS), ((0.0, None), (0.0, None), (0.0, 0.5)),
+                                ((0.005, 2.0, True), (0.005, 2.0, True), (0.005, 0.3, True)), data, rmse_of(wdrkf), metric, wdrkf),
+        "MKF": TuningProblem("MKF", "DRKF(Moment(θ₂ₓ), Moment(θ₂ᵥ), EpsContamination(ε))", ("θ₂ₓ", "θ₂ᵥ", "ε"),
+                             (MKF_THETA2, MKF_THETA2, EPS), ((1.0, None), (1.0, None), (0.0, 0.5)),
+                             ((1.001, 1.3, True), (1.001, 1.3, True), (0.005, 0.3, True)), data, rmse_of(moment), metric, moment),
+    }
+
+
 def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress: bool = False, curves: bool = False,
-         num_steps: int = NUM_STEPS) -> Report:
+         num_steps: int = NUM_STEPS, params=None) -> Report:
     key = jax.random.key(seed)
     traj = scenario(key, runs, alpha, outliers, num_steps)
     mets = {"rmse": lambda tr, res: metrics.rmse(tr.states, res.filtered_means)}
@@ -115,6 +156,8 @@ def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress
     with _progress.phase(f"tuning the MKF's θ₂ ({TUNE_STEPS} Adam steps on {TRAIN_RUNS} runs)"):
         fitted = tune_mkf(jax.random.fold_in(key, 2**31 - 1), alpha, outliers, num_steps=num_steps)
     flts = filters() | {"MKF-tuned": fitted.filter}
+    problems = tuning_problems(alpha, outliers)
+    flts |= {f"{label}-params": problems[label].make(values) for label, values in (params or {}).items()}
     if not outliers:  # diagnostic: the MKF without its outlier model (no Huber clipping)
         flts["MKF-no-clip"] = DRKF(state_set=Moment(MKF_THETA2), noise_set=Moment(MKF_THETA2), throw=False)
     out = montecarlo(flts, nominal_model(), prior(), traj, metrics=mets, chunk_size=500, progress=progress)
@@ -193,8 +236,8 @@ def _swap_notes(paper: dict, values: dict) -> list[str]:
 
 
 def _make(name, alpha, outliers, description):
-    def run(runs: int, seed: int, progress: bool = False, curves: bool = False, num_steps: int = NUM_STEPS) -> Report:
-        return _run(name, alpha, outliers, runs, seed, progress, curves, num_steps)
+    def run(runs: int, seed: int, progress: bool = False, curves: bool = False, num_steps: int = NUM_STEPS, params=None) -> Report:
+        return _run(name, alpha, outliers, runs, seed, progress, curves, num_steps, params)
 
     return register(Experiment(
         name=name, description=description, default_runs=100, run=run, quick={"runs": 8, "num_steps": 300},
@@ -205,7 +248,10 @@ def _make(name, alpha, outliers, description):
         metric=f"RMSE of the filtered state over the {NUM_STEPS} steps of a run, sqrt(mean_k ‖x_k − x̂_k‖²) "
         "(units of the state; lower is better); mean over runs.",
         legend={"MKF-tuned": "the MKF with θ₂ fitted by gradient on separate training runs",
-                "MKF-no-clip": "the MKF without its outlier model (diagnostic)"},
+                "MKF-no-clip": "the MKF without its outlier model (diagnostic)",
+                "W-DRKF-params": "DRKF with Wasserstein sets and ε-contamination, parameters from `jdrkf tune`",
+                "MKF-params": "the MKF with θ₂ₓ, θ₂ᵥ, ε from `jdrkf tune`"},
+        tuning=functools.partial(tuning_problems, alpha, outliers),
     ))
 
 
