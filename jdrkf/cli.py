@@ -81,7 +81,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--num-processes", type=_int_at_least(1), default=None, help="with --coordinator: the number of processes")
     r.add_argument("--process-id", type=_int_at_least(0), default=None, help="with --coordinator: this process's index")
     t = sub.add_parser("tune", help="tune the filters of an experiment on training runs, score them on held-out runs")
-    t.add_argument("name", help="experiment name (one with a tuning problem: see `jdrkf tune --help`)")
+    t.add_argument("name", help="experiment name with a tuning problem: wang-ye-table1/2/3, chen-fusion, li-torsion, wang-growth, jang-lqr")
     t.add_argument("--method", choices=("grad", "grid", "random"), default="grad",
                    help="gradient (Adam through the filters), a full grid, or random search (default grad)")
     t.add_argument("--budget", type=_number_at_least(1.0), default=None,

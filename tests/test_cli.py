@@ -543,3 +543,21 @@ def test_distributed_start_failure_is_one_line(capsys, no_compute, monkeypatch):
     _one_line_error(capsys, cli.main(["reproduce", "wang-ye-table3", "--distributed"]),
                     "--distributed: jax.distributed.initialize() failed: coordinator_address should be defined;",
                     "pass --coordinator HOST:PORT --num-processes N --process-id I")
+
+
+def test_tune_help_names_exactly_the_experiments_with_a_tuning_problem(capsys):
+    """`jdrkf tune --help` lists the tunable experiments without importing them (startup stays
+    light), so the list is written out: it must match the registry."""
+    import jdrkf.experiments as ex
+
+    with pytest.raises(SystemExit):
+        cli.main(["tune", "--help"])
+    text = " ".join(capsys.readouterr().out.split()).replace("- ", "-")  # argparse wraps after hyphens
+    listed = re.search(r"with a tuning problem: ([^)]*?)(?: options:|$)", text).group(1)
+    names = set()
+    for item in listed.split(", "):
+        stem, *alts = item.strip().split("/")
+        names.add(stem)
+        names.update(stem[: -len(a)] + a for a in alts)
+    tunable = {name for name, exp in ex.EXPERIMENTS.items() if exp.tuning is not None}
+    assert names == tunable
