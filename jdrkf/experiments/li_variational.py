@@ -512,7 +512,7 @@ def run_identity(runs: int, seed: int, progress: bool = False, curves: bool = Fa
         "claim, both robust/adaptive filters beat the KF, is checked by the paired intervals below.",
         "y2: all our RMSEs (KF included) sit above the paper's single run, and its adaptive-filter numbers lie "
         "below nearly all of our runs. We keep the authors' code law (std × a(t), a up to 5): a side check with "
-        "the printed law (variance × (2 sin²(0.04π t) + 1)) gave a KF position RMSE ≈ 0.066 over 50 runs, far "
+        "the printed law (variance × (2 sin²(0.04π t) + 1)) gave a KF position RMSE ≈ 0.066 over 50 runs (seed 0; measured once, not recomputed here), far "
         "below the paper's 0.130, so the printed law is not what produced Table III either.",
         "iterations@y1/y2 (Table III's last column): average number of iterations per step, per run. STKF and "
         "STKF-AR1 report the fixed-point passes actually run (info['iterations'], at least 1; the count the "
