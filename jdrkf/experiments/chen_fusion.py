@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _progress
 from .._gaussian import Gaussian
 from .._multisensor import MultiSensorModel
 from .._simulate import simulate
@@ -208,11 +209,13 @@ def run_variant(variant: str, runs: int, seed: int, *, train_runs: int = 200, fi
         if name in tuned:
             filters[name] = MarginalDRKF(tuned[name], throw=False)
     per_run, curves = {}, {}
-    for name, flt in filters.items():
-        means = np.asarray(eqx.filter_jit(_means)(name, flt, model, prior, test.observations))
-        err2 = (np.asarray(test.states) - means) ** 2  # (runs, T, 3)
-        per_run[name] = err2.mean(axis=1)
-        curves[f"{variant}/{name}"] = err2[..., 0].mean(axis=0)
+    with _progress.phase(f"[{variant}] evaluation ({runs} runs per filter)", len(filters), "filter") as bar:
+        for name, flt in filters.items():
+            means = np.asarray(eqx.filter_jit(_means)(name, flt, model, prior, test.observations))
+            err2 = (np.asarray(test.states) - means) ** 2  # (runs, T, 3)
+            per_run[name] = err2.mean(axis=1)
+            curves[f"{variant}/{name}"] = err2[..., 0].mean(axis=0)
+            bar.update(1)
     return per_run, curves
 
 

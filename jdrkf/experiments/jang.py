@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import metrics
+from .. import _progress, metrics
 from .._closed_loop import LQRController, closed_loop
 from .._em import em_noise_covariances
 from .._gaussian import Gaussian
@@ -263,17 +263,15 @@ def _evaluate(setting, key, runs, progress, names):
     laws = _laws(setting)
     true_model = _true_model(setting)
     out = {}
-    for theta in THETAS:
-        for name, flt in filters(theta).items():
-            if name not in names:
-                continue
+    jobs = [(theta, name, flt) for theta in THETAS for name, flt in filters(theta).items() if name in names]
+    with _progress.reporter(progress).phase(f"closed loop, {setting} noise ({runs} runs per filter and θ)", len(jobs), "filter") as bar:
+        for theta, name, flt in jobs:
             if name in ("KF", "SS-KF") and theta != THETAS[0]:
                 out[name][theta] = out[name][THETAS[0]]
-                continue
-            cost, mse, ok, ok0 = _run_batch(flt, qs, rs, keys, laws, true_model, controller, reference)
-            out.setdefault(name, {})[theta] = (np.asarray(cost), np.asarray(mse), np.asarray(ok), np.asarray(ok0))
-            if progress:
-                print(f"  {setting} {name} θ={theta}: cost {np.nanmean(cost):.1f}, successful runs {int(np.sum(ok))}/{runs}", flush=True)
+            else:
+                cost, mse, ok, ok0 = _run_batch(flt, qs, rs, keys, laws, true_model, controller, reference)
+                out.setdefault(name, {})[theta] = (np.asarray(cost), np.asarray(mse), np.asarray(ok), np.asarray(ok0))
+            bar.update(1)
     return out
 
 

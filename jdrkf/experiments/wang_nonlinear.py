@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import metrics
+from .. import _progress, metrics
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
 from .._simulate import simulate
@@ -144,32 +144,35 @@ def run_growth(runs: int = 100, seed: int = 0, progress: bool = False, curves: b
     ukf = UnscentedKF(sigma_points="simon", redraw=False, throw=False)
     paired = {(c, p): [] for c in PAPER_GROWTH for p in ("honest", "authors")}
     t0 = time.perf_counter()
-    for case, table in PAPER_GROWTH.items():
-        filt_model = models["nominal"] if case == "mismatch" else models["true"]
-        for protocol in ("honest", "authors"):
-            states, ys = _protocol_data(jax.random.fold_in(key, 0), models["true"], _point_mass(1), GROWTH_STEPS, runs, protocol)
-            keys = jax.random.split(jax.random.fold_in(key, 1), runs)
-            u = _rtamse(states, _run_batch(ukf, filt_model, prior, ys, keys), [0])
-            sw = {"PF": [], "RPF": [], "UKF": []}
-            for n in particles:
-                vals = {"PF": _rtamse(states, _run_batch(_pf(n), filt_model, prior, ys, keys), [0]), "UKF": u}
-                vals["RPF"] = _rtamse(states, _run_batch(_rpf(n), filt_model, prior, ys, keys), [0])
-                paper_j = PARTICLES.index(n) if n in PARTICLES else None
-                for name, v in vals.items():
-                    rows.append(Row.from_values(name, f"RTAMSE [{case}, {protocol}, N={n}]", None if paper_j is None else table[name][paper_j], v))
-                    sw[name].append(v)
-                diff, (lo, hi) = metrics.mean_ci(vals["RPF"] - vals["PF"])
-                paired[case, protocol].append((lo, hi))
-                if n == particles[-1] or n == 200:
-                    notes.append(
-                        f"[{case}, {protocol}] N = {n}: RPF − PF paired difference {diff:+.3f} (95% CI [{lo:+.3f}, {hi:+.3f}]); "
-                        f"RPF better in {100 * float(np.mean(vals['RPF'] < vals['PF'])):.0f}% of runs."
-                    )
-            sweeps[f"growth-{case}-{protocol}"] = Sweep(
-                "particles N", np.asarray(particles), {k: np.stack(v, axis=1) for k, v in sw.items()},
-                paper={k: np.asarray([table[k][PARTICLES.index(n)] if n in PARTICLES else np.nan for n in particles]) for k in sw},
-                y_label="averaged RTAMSE",
-            )
+    total = len(PAPER_GROWTH) * 2 * len(particles)
+    with _progress.phase(f"PF, RPF, UKF on the growth model ({runs} runs each)", total, "setting") as bar:
+        for case, table in PAPER_GROWTH.items():
+            filt_model = models["nominal"] if case == "mismatch" else models["true"]
+            for protocol in ("honest", "authors"):
+                states, ys = _protocol_data(jax.random.fold_in(key, 0), models["true"], _point_mass(1), GROWTH_STEPS, runs, protocol)
+                keys = jax.random.split(jax.random.fold_in(key, 1), runs)
+                u = _rtamse(states, _run_batch(ukf, filt_model, prior, ys, keys), [0])
+                sw = {"PF": [], "RPF": [], "UKF": []}
+                for n in particles:
+                    vals = {"PF": _rtamse(states, _run_batch(_pf(n), filt_model, prior, ys, keys), [0]), "UKF": u}
+                    vals["RPF"] = _rtamse(states, _run_batch(_rpf(n), filt_model, prior, ys, keys), [0])
+                    paper_j = PARTICLES.index(n) if n in PARTICLES else None
+                    for name, v in vals.items():
+                        rows.append(Row.from_values(name, f"RTAMSE [{case}, {protocol}, N={n}]", None if paper_j is None else table[name][paper_j], v))
+                        sw[name].append(v)
+                    diff, (lo, hi) = metrics.mean_ci(vals["RPF"] - vals["PF"])
+                    paired[case, protocol].append((lo, hi))
+                    bar.update(1)
+                    if n == particles[-1] or n == 200:
+                        notes.append(
+                            f"[{case}, {protocol}] N = {n}: RPF − PF paired difference {diff:+.3f} (95% CI [{lo:+.3f}, {hi:+.3f}]); "
+                            f"RPF better in {100 * float(np.mean(vals['RPF'] < vals['PF'])):.0f}% of runs."
+                        )
+                sweeps[f"growth-{case}-{protocol}"] = Sweep(
+                    "particles N", np.asarray(particles), {k: np.stack(v, axis=1) for k, v in sw.items()},
+                    paper={k: np.asarray([table[k][PARTICLES.index(n)] if n in PARTICLES else np.nan for n in particles]) for k in sw},
+                    y_label="averaged RTAMSE",
+                )
     # Fig. 3: θ sweep at N = 200, mismatch, honest protocol.
     states, ys = _protocol_data(jax.random.fold_in(key, 0), models["true"], _point_mass(1), GROWTH_STEPS, runs, "honest")
     keys = jax.random.split(jax.random.fold_in(key, 1), runs)
