@@ -290,3 +290,41 @@ def test_gradient_through_marginal_drkf_per_sensor_radii(sensor):
 
 def test_gradient_through_wasserstein_drkf_three_parameters(objective):
     _check_gradient(lambda v: objective(jdrkf.DRKF(state_set=Wasserstein(v[0]), noise_set=Wasserstein(v[1]), outliers=EpsContamination(v[2]))), [0.2, 0.1, 0.05])
+
+
+# --------------------------------------------------------------------------- the experiments' tuning problems
+def _problems():
+    """(experiment, filter) of every registered tuning problem except the particle filter's
+    (its objective is piecewise constant in the resampling: finite differences do not
+    apply; its gradient is checked against the Kalman filter's exact score in
+    tests/test_resampling.py)."""
+    import jdrkf.experiments as ex
+
+    seen, out = set(), []
+    for name, exp in sorted(ex.EXPERIMENTS.items()):
+        if exp.tuning is None or exp.tuning in seen:
+            continue
+        seen.add(exp.tuning)
+        out += [(name, label) for label, problem in exp.tuning(True).items() if name != "wang-growth"]
+    return out
+
+
+@pytest.mark.slow  # one compilation of value-and-gradient per problem
+@pytest.mark.parametrize("experiment,label", _problems())
+def test_gradient_through_every_tuned_parameter_matches_finite_differences(experiment, label):
+    """Every parameter of every experiment's tuning problem (quick data, 3 runs), at its
+    start: the gradient of the training objective vs central finite differences (1e-5)."""
+    import jdrkf.experiments as ex
+
+    problem = ex.EXPERIMENTS[experiment].tuning(True)[label]
+    data = problem.data(jax.random.key(0), 3)
+    start = tuple(jnp.asarray(float(x)) for x in problem.start)
+    loss = jax.jit(problem.loss)
+    grad = jax.grad(problem.loss)(start, data)
+    for i, x in enumerate(problem.start):
+        h = 1e-5 * max(abs(float(x)), 1e-2)
+        up = tuple(jnp.asarray(float(v) + (h if j == i else 0.0)) for j, v in enumerate(problem.start))
+        down = tuple(jnp.asarray(float(v) - (h if j == i else 0.0)) for j, v in enumerate(problem.start))
+        fd = (float(loss(up, data)) - float(loss(down, data))) / (2 * h)
+        assert abs(fd) > 1e-8, f"{problem.names[i]}: the objective does not depend on it"
+        np.testing.assert_allclose(float(grad[i]), fd, rtol=1e-5, atol=1e-9, err_msg=problem.names[i])
