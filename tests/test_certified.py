@@ -47,7 +47,8 @@ def problem():
     return a @ a.T + np.eye(3), rng.normal(size=(2, 3)), b @ b.T + np.eye(2)
 
 
-@pytest.mark.parametrize("sets", [(Wasserstein(0.5), Wasserstein(0.3)), (KL(0.5), KL(0.3))], ids=["wasserstein", "kl"])
+@pytest.mark.parametrize("sets", [(Wasserstein(0.5), Wasserstein(0.3)), pytest.param((KL(0.5), KL(0.3)), marks=pytest.mark.slow)],
+                         ids=["wasserstein", "kl"])
 def test_worst_case_stopped_early_is_not_converged(problem, sets):
     prior, h, noise = problem
     exact = worst_case(*sets, prior, h, noise)
