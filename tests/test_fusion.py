@@ -87,7 +87,7 @@ def test_model_validation():
         CKF()(model.as_linear(), prior, np.zeros((4, 3)))
     with pytest.raises(ValueError, match="criterion"):
         CovarianceIntersection("max")
-    with pytest.raises(ValueError, match="MarginalMoment or jdrkf.sets.MarginalKL"):
+    with pytest.raises(ValueError, match="set must be a marginal set"):
         MarginalDRKF(jdrkf.sets.Moment(1.1))
     with pytest.raises(ValueError, match="model must be"):
         MarginalDRKF(MarginalKL(0.1))(model.as_linear(), prior, np.zeros((4, 3)))

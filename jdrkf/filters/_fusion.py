@@ -13,7 +13,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .. import linalg
 from .._gaussian import Gaussian, log_density
 from .._multisensor import MultiSensorModel
-from ..sets._marginal import MarginalKL, MarginalMoment, marginal_mmse
+from ..sets._marginal import AbstractMarginalSet, marginal_mmse
 from ._base import RESULTS, AbstractFilter, StepOutput
 from ._kalman import predict, update
 from ._steps import step_result
@@ -251,15 +251,15 @@ class MarginalDRKF(AbstractFilter):
     concrete and report `RESULTS.invalid_hyperparameter` when traced.
     """
 
-    set: MarginalMoment | MarginalKL  # noqa: A003
+    set: AbstractMarginalSet  # noqa: A003
     rtol: float | None = eqx.field(default=None, static=True, kw_only=True)
     max_iter: int = eqx.field(default=2000, static=True, kw_only=True)
     shared_covariance: ClassVar[bool] = True
     model_types: ClassVar[tuple[type, ...]] = (MultiSensorModel,)
 
     def __check_init__(self):
-        if not isinstance(self.set, (MarginalMoment, MarginalKL)):
-            raise ValueError(f"set must be jdrkf.sets.MarginalMoment or jdrkf.sets.MarginalKL, got {type(self.set).__name__}")
+        if not isinstance(self.set, AbstractMarginalSet):
+            raise ValueError(f"set must be a marginal set (jdrkf.sets.MarginalMoment or MarginalKL), got {type(self.set).__name__}")
 
     def init(self, model: MultiSensorModel, prior: Gaussian) -> Gaussian:
         return prior

@@ -3,6 +3,7 @@
 from ._base import AbstractAmbiguitySet as AbstractAmbiguitySet
 from ._divergence import KL as KL
 from ._marginal import (
+    AbstractMarginalSet as AbstractMarginalSet,
     MarginalKL as MarginalKL,
     MarginalMoment as MarginalMoment,
     MarginalWorstCase as MarginalWorstCase,

@@ -36,6 +36,7 @@ optimal face, so gain, posterior covariance and value are the meaningful outputs
 
 from __future__ import annotations
 
+import abc
 import math
 
 import equinox as eqx
@@ -73,10 +74,59 @@ def _per_sensor(name: str, x, *, lower: float, upper: float, lower_open: bool = 
     return x
 
 
-class MarginalMoment(eqx.Module):
+class AbstractMarginalSet(eqx.Module):
+    """Per-sensor ambiguity sets on the marginal blocks `S_{B_i}` of `(x, yⁱ)`, in the
+    whitened coordinates `Z_{B_i}` (`S = G Z Gᵀ`, nominal `Z = I`). One interface for the
+    solver (`marginal_mmse`): the projection onto one block's set (projected gradient),
+    its log-barrier and the barrier's gradient (barrier path), the interior test, the
+    outward widening and the centre. Subclasses hold one value per sensor after
+    `broadcast(p, dtype)`."""
+
+    @abc.abstractmethod
+    def valid(self) -> Bool[Array, ""]:
+        """Traced range check; concrete values are checked when the set is built."""
+
+    @abc.abstractmethod
+    def broadcast(self, p: int, dtype) -> AbstractMarginalSet:
+        """The set with one value per sensor (`p` sensors) in `dtype`."""
+
+    @abc.abstractmethod
+    def project(self, block: Float[Array, "b b"], i: int) -> Float[Array, "b b"]:
+        """Euclidean projection of the symmetric `block` onto sensor `i`'s set (a spectral map)."""
+
+    @abc.abstractmethod
+    def barrier(self, block: Float[Array, "b b"], i: int) -> Float[Array, ""]:
+        """Log-barrier of sensor `i`'s set at `block` (`−∞` outside)."""
+
+    @abc.abstractmethod
+    def barrier_grad(self, block: Float[Array, "b b"], i: int) -> Float[Array, "b b"]:
+        """Gradient of `barrier` with respect to the (symmetric) `block`."""
+
+    @abc.abstractmethod
+    def barrier_size(self, n: int, dims: tuple[int, ...]) -> float:
+        """Self-concordance parameter `ν` of the sum of the blocks' barriers."""
+
+    @abc.abstractmethod
+    def interior(self) -> Bool[Array, ""]:
+        """Whether the intersection of the sets has a nonempty interior."""
+
+    @abc.abstractmethod
+    def widen(self) -> AbstractMarginalSet:
+        """The set with its radii shifted outwards by `_WIDEN` (derivatives for sets
+        without interior)."""
+
+    @abc.abstractmethod
+    def centre(self, dim: int, dtype) -> Float[Array, "dim dim"]:
+        """A point of the intersection, strictly inside when it has an interior."""
+
+
+class MarginalMoment(AbstractMarginalSet):
     """Per-sensor moment sets `γ₁ᵢ Σ_i ⪯ S_{B_i} ⪯ γ₂ᵢ Σ_i` (Chen et al. 2025, eq. 2 with
     zero mean ambiguity), `0 < γ₁ ≤ 1 ≤ γ₂`. Scalars or one value per sensor.
-    The authors' code (`MDRO.m`) uses `γ₁ = 1 − g`, `γ₂ = 1 + g`."""
+    The authors' code (`MDRO.m`) uses `γ₁ = 1 − g`, `γ₂ = 1 + g`.
+
+    Whitened, `γ₁ᵢ I ⪯ Z_{B_i} ⪯ γ₂ᵢ I`: projection clips the eigenvalues to
+    `[γ₁ᵢ, γ₂ᵢ]`; barrier `log det(Z_B − γ₁ᵢ I) + log det(γ₂ᵢ I − Z_B)`."""
 
     gamma1: Float[Array, "*p"]
     gamma2: Float[Array, "*p"]
@@ -89,12 +139,41 @@ class MarginalMoment(eqx.Module):
         """Traced range check (`0 < γ₁ ≤ 1 ≤ γ₂ < ∞`); concrete values are checked eagerly."""
         return in_range(self.gamma1, 0.0, 1.0, lower_open=True) & in_range(self.gamma2, 1.0)
 
+    def broadcast(self, p, dtype):
+        return _replace(self, gamma1=_broadcast("gamma1", self.gamma1, p, dtype), gamma2=_broadcast("gamma2", self.gamma2, p, dtype))
 
-class MarginalKL(eqx.Module):
+    def project(self, block, i):
+        return _spectral(block, lambda lam: jnp.clip(lam, self.gamma1[i], self.gamma2[i]))
+
+    def barrier(self, block, i):
+        eye = jnp.eye(block.shape[-1], dtype=block.dtype)
+        return linalg.psd_logdet(block - self.gamma1[i] * eye) + linalg.psd_logdet(self.gamma2[i] * eye - block)
+
+    def barrier_grad(self, block, i):
+        eye = jnp.eye(block.shape[-1], dtype=block.dtype)
+        return linalg.psd_inv(block - self.gamma1[i] * eye) - linalg.psd_inv(self.gamma2[i] * eye - block)
+
+    def barrier_size(self, n, dims):
+        return 2.0 * sum(n + d for d in dims)
+
+    def interior(self):
+        return jnp.all(self.gamma1 < self.gamma2) & (jnp.max(self.gamma1) < jnp.min(self.gamma2))
+
+    def widen(self):
+        return _replace(self, gamma1=jnp.maximum(self.gamma1 - _WIDEN, 0.5 * self.gamma1), gamma2=self.gamma2 + _WIDEN)
+
+    def centre(self, dim, dtype):
+        return 0.5 * (jnp.max(self.gamma1) + jnp.min(self.gamma2)) * jnp.eye(dim, dtype=dtype)
+
+
+class MarginalKL(AbstractMarginalSet):
     """Per-sensor KL balls `KL(N(0, S_{B_i}) ‖ N(0, Σ_i)) =
     ½[Tr(Σ_i⁻¹S_{B_i}) − log det(Σ_i⁻¹S_{B_i}) − d_i] ≤ cᵢ`, `c ≥ 0` (scalar or per sensor).
     Note: the authors' code (`MDRO.m`) bounds twice this quantity (no ½) by its `c`,
-    so their `c` is `2c` here."""
+    so their `c` is `2c` here.
+
+    Whitened, `Tr Z_B − log det Z_B − d_i ≤ 2cᵢ`: projection maps the spectrum with one
+    multiplier found by bisection (`_kl_map`); barrier `log(2cᵢ − Tr Z_B + log det Z_B + d_i)`."""
 
     c: Float[Array, "*p"]
 
@@ -104,6 +183,48 @@ class MarginalKL(eqx.Module):
     def valid(self) -> Bool[Array, ""]:
         """Traced range check (`0 ≤ c < ∞`); concrete values are checked eagerly."""
         return in_range(self.c, 0.0)
+
+    def broadcast(self, p, dtype):
+        return _replace(self, c=_broadcast("c", self.c, p, dtype))
+
+    def project(self, block, i):
+        return _spectral(block, lambda lam: _kl_map(lam, 2.0 * self.c[i]))
+
+    def _slack(self, block, i):
+        return 2.0 * self.c[i] - (jnp.trace(block) - linalg.psd_logdet(block) - block.shape[-1])
+
+    def barrier(self, block, i):
+        return jnp.log(self._slack(block, i))
+
+    def barrier_grad(self, block, i):
+        eye = jnp.eye(block.shape[-1], dtype=block.dtype)
+        return (linalg.psd_inv(block) - eye) / self._slack(block, i)
+
+    def barrier_size(self, n, dims):
+        return float(len(dims))
+
+    def interior(self):
+        return jnp.all(self.c > 0)
+
+    def widen(self):
+        return _replace(self, c=self.c + _WIDEN)
+
+    def centre(self, dim, dtype):
+        return jnp.eye(dim, dtype=dtype)
+
+
+def _replace(module: eqx.Module, **fields) -> eqx.Module:
+    """`module` with `fields` replaced, without running `__init__` (its eager checks would
+    see tracers or intermediate values)."""
+    names = tuple(fields)
+    return eqx.tree_at(lambda m: tuple(getattr(m, k) for k in names), module, tuple(fields.values()))
+
+
+def _broadcast(name, x, p, dtype):
+    x = jnp.asarray(x).astype(dtype)
+    if x.ndim == 1 and x.shape[0] != p:
+        raise ValueError(f"{name} has {x.shape[0]} values but there are {p} sensors (dims has length {p})")
+    return jnp.broadcast_to(x, (p,))
 
 
 class MarginalWorstCase(eqx.Module):
@@ -216,21 +337,15 @@ def _kl_map(lam, two_c):
     return jnp.where(feasible, lam, out)
 
 
-def _projection(kind, params, blocks, eps):
-    """Dykstra projection onto `{Z ⪰ εI} ∩ ⋂ᵢ Cᵢ` (each `Cᵢ` a spectral map of one block)."""
+def _projection(set_, blocks, eps):
+    """Dykstra projection onto `{Z ⪰ εI} ∩ ⋂ᵢ Cᵢ` (`Cᵢ`: sensor `i`'s set on its block)."""
     n_sets = len(blocks) + 1
 
     def project_j(j, y):
         if j == 0:
             return _spectral(y, lambda lam: jnp.maximum(lam, eps))
         idx = blocks[j - 1]
-        b = y[np.ix_(idx, idx)]
-        if kind == "moment":
-            g1, g2 = params[0][j - 1], params[1][j - 1]
-            nb = _spectral(b, lambda lam: jnp.clip(lam, g1, g2))
-        else:
-            nb = _spectral(b, lambda lam: _kl_map(lam, 2.0 * params[0][j - 1]))
-        return y.at[np.ix_(idx, idx)].set(nb)
+        return y.at[np.ix_(idx, idx)].set(set_.project(y[np.ix_(idx, idx)], j - 1))
 
     def proj(y0):
         def cond(c):
@@ -296,7 +411,7 @@ def _projected_gradient(fg, proj, z0, rtol, max_iter):
 # ----------------------------------------------------------------- barrier polish
 
 
-def _barrier_fn(kind, n, dims, blocks, tri):
+def _barrier_fn(n, dims, blocks, tri):
     dim = n + sum(dims)
 
     pos = np.zeros((dim, dim), dtype=np.int32)
@@ -306,40 +421,26 @@ def _barrier_fn(kind, n, dims, blocks, tri):
     def unvec(v):
         return v[pos]  # a gather: transposes (reverse mode) without unique-index scatters
 
-    def F(v, g, params, mu):
+    def F(v, g, set_, mu):
         z = unvec(v)
         fg = _objective(g, n)
         f0 = fg(jnp.eye(dim, dtype=v.dtype))[0]
         bar = linalg.psd_logdet(z)
         for i, idx in enumerate(blocks):
-            b = z[np.ix_(idx, idx)]
-            eye = jnp.eye(len(idx), dtype=v.dtype)
-            if kind == "moment":
-                bar = bar + linalg.psd_logdet(b - params[0][i] * eye) + linalg.psd_logdet(params[1][i] * eye - b)
-            else:
-                gap = 2.0 * params[0][i] - (jnp.trace(b) - linalg.psd_logdet(b) - len(idx))
-                bar = bar + jnp.log(gap)
+            bar = bar + set_.barrier(z[np.ix_(idx, idx)], i)
         return fg(z)[0] / f0 + mu * bar
 
     weights = np.where(tri[0] == tri[1], 1.0, 2.0)
 
-    inv = linalg.psd_inv  # derivative −X dA X: the Hessian by jacfwd is batched products
-
-    def dF(v, g, params, mu):
-        """Closed-form gradient of `F` in the upper-triangle coordinates `v`."""
+    def dF(v, g, set_, mu):
+        """Closed-form gradient of `F` in the upper-triangle coordinates `v` (inverses by
+        `linalg.psd_inv`, whose derivative −X dA X makes the Hessian by jacfwd batched products)."""
         z = unvec(v)
         fg = _objective(g, n)
         f0 = fg(jnp.eye(dim, dtype=v.dtype))[0]
-        gz = fg(z)[1] / f0 + mu * inv(z)
+        gz = fg(z)[1] / f0 + mu * linalg.psd_inv(z)
         for i, idx in enumerate(blocks):
-            b = z[np.ix_(idx, idx)]
-            eye = jnp.eye(len(idx), dtype=v.dtype)
-            if kind == "moment":
-                gb = inv(b - params[0][i] * eye) - inv(params[1][i] * eye - b)
-            else:
-                gap = 2.0 * params[0][i] - (jnp.trace(b) - linalg.psd_logdet(b) - len(idx))
-                gb = (inv(b) - eye) / gap
-            gz = gz.at[np.ix_(idx, idx)].add(mu * gb)
+            gz = gz.at[np.ix_(idx, idx)].add(mu * set_.barrier_grad(z[np.ix_(idx, idx)], i))
         return linalg.symmetrize(gz)[tri] * jnp.asarray(weights, v.dtype)
 
     return F, dF, unvec
@@ -361,7 +462,7 @@ def _barrier_path(F, dF, v, args, mu_final, stages):
     return lax.fori_loop(0, stages + 1, stage, v)
 
 
-def _barrier_gap(kind, dF, v, args, mu, n, dims):
+def _barrier_gap(dF, v, args, mu, n, dims):
     """Bound on `(max f − f(Z))/f₀` at a strictly feasible point `v` of the barrier path.
 
     By Danskin `f ≤ ⟨∇f(Z), ·⟩` on the set, so the optimum is at most that of the *linear*
@@ -374,7 +475,7 @@ def _barrier_gap(kind, dF, v, args, mu, n, dims):
     `d + p` (one term per KL ball). Returns that bound divided by `f₀` (`inf` if `λ ≥ 1`)
     and `νμ`, the part the barrier itself leaves."""
     dim = n + sum(dims)
-    nu = dim + (2.0 * sum(n + d for d in dims) if kind == "moment" else float(len(dims)))
+    nu = dim + args[1].barrier_size(n, dims)
     grad = dF(v, *args, mu)
     hess_barrier = jax.jacfwd(dF)(v, *args, mu) - jax.jacfwd(dF)(v, *args, jnp.zeros_like(mu))
     lam = jnp.sqrt(jnp.maximum(-jnp.sum(grad * jnp.linalg.solve(hess_barrier, grad)) / mu, 0.0))
@@ -390,41 +491,19 @@ def _mu_schedule(dtype):
     return mu_final, stages
 
 
-def _interior(kind, params):
-    if kind == "moment":
-        g1, g2 = params
-        return jnp.all(g1 < g2) & (jnp.max(g1) < jnp.min(g2))
-    return jnp.all(params[0] > 0)
-
-
-def _widen(kind, params):
-    """Radii shifted outwards by `_WIDEN` (derivatives for sets without interior)."""
-    if kind == "moment":
-        g1, g2 = params
-        return jnp.maximum(g1 - _WIDEN, 0.5 * g1), g2 + _WIDEN
-    return (params[0] + _WIDEN,)
-
-
-def _centre(kind, params, dim, dtype):
-    if kind == "moment":
-        g1, g2 = params
-        return 0.5 * (jnp.max(g1) + jnp.min(g2)) * jnp.eye(dim, dtype=dtype)
-    return jnp.eye(dim, dtype=dtype)
-
-
-def _make_zstar(kind, n, dims, rtol, max_iter):
+def _make_zstar(n, dims, rtol, max_iter):
     blocks = _blocks(n, dims)
     dim = n + sum(dims)
     tri = np.triu_indices(dim)
-    F, dF, unvec = _barrier_fn(kind, n, dims, blocks, tri)
+    F, dF, unvec = _barrier_fn(n, dims, blocks, tri)
 
-    def forward(g, params):
+    def forward(g, set_):
         dtype = g.dtype
         fg = _objective(g, n)
         eps = jnp.asarray(1e-9, dtype) if dtype == jnp.float64 else jnp.asarray(1e-5, dtype)
-        proj = _projection(kind, params, blocks, eps)
-        interior = _interior(kind, params)
-        centre = _centre(kind, params, dim, dtype)
+        proj = _projection(set_, blocks, eps)
+        interior = set_.interior()
+        centre = set_.centre(dim, dtype)
         # With an interior the barrier path (from its centre) is the solver: the projected
         # gradient runs only for sets without interior (lax.cond skips it otherwise;
         # under vmap both branches run).
@@ -433,31 +512,31 @@ def _make_zstar(kind, n, dims, rtol, max_iter):
             lambda: (centre, jnp.zeros((), int), jnp.zeros((), dtype)),
             lambda: _projected_gradient(fg, proj, centre, rtol, max_iter),
         )
-        bparams = tuple(jnp.where(interior, p, w) for p, w in zip(params, _widen(kind, params), strict=True))
+        bset = jax.tree.map(lambda p, w: jnp.where(interior, p, w), set_, set_.widen())
         mu_final, stages = _mu_schedule(dtype)
         alpha = jnp.asarray(1e-2, dtype)
-        z0 = (1.0 - alpha) * z_pg + alpha * _centre(kind, bparams, dim, dtype)  # = centre if interior
+        z0 = (1.0 - alpha) * z_pg + alpha * bset.centre(dim, dtype)  # = centre if interior
         v = z0[tri]
         mu = jnp.asarray(mu_final, dtype)
-        v = _barrier_path(F, dF, v, (g, bparams), mu, stages)
+        v = _barrier_path(F, dF, v, (g, bset), mu, stages)
         # Certificate: a strictly feasible point whose gap bound is at most twice the
         # barrier's own `νμf₀` (relative to the nominal value `f₀ ≤ max f`).
-        feasible = jnp.all(jnp.isfinite(v)) & jnp.isfinite(F(v, g, bparams, mu))
-        gap, barrier = _barrier_gap(kind, dF, v, (g, bparams), mu, n, dims)
+        feasible = jnp.all(jnp.isfinite(v)) & jnp.isfinite(F(v, g, bset, mu))
+        gap, barrier = _barrier_gap(dF, v, (g, bset), mu, n, dims)
         polished = interior & feasible & (gap <= 2.0 * barrier)
         z = jnp.where(polished, unvec(v), z_pg)
         converged = jnp.where(interior, polished, res <= rtol)
-        return z, v, bparams, mu, iters, res, polished, converged
+        return z, v, bset, mu, iters, res, polished, converged
 
-    def zstar(g, params):
+    def zstar(g, set_):
         """Worst case `Z*` (the barrier solution when polished, else the projected-gradient
         point) with the derivatives of the barrier solution: the implicit function
         theorem on `∇F = 0` (`implicit_root`), the solve itself under `stop_gradient`."""
         with linalg.lapack_only():
-            z, v, bparams, mu, iters, res, polished, converged = forward(*jax.tree.map(lax.stop_gradient, (g, params)))
-            # The widening is a shift: the barrier's radii have the tangents of `params`.
-            bp = tuple(p + lax.stop_gradient(b - p) for p, b in zip(params, bparams, strict=True))
-            v = implicit_root(lambda u: dF(u, g, bp, mu), lambda _: (v, ()), v)[0]
+            z, v, bset, mu, iters, res, polished, converged = forward(*jax.tree.map(lax.stop_gradient, (g, set_)))
+            # The widening is a shift: the barrier's radii have the tangents of `set_`'s.
+            bs = jax.tree.map(lambda p, b: p + lax.stop_gradient(b - p), set_, bset)
+            v = implicit_root(lambda u: dF(u, g, bs, mu), lambda _: (v, ()), v)[0]
         z = jnp.where(polished, unvec(v), unvec(v) + lax.stop_gradient(z - unvec(v)))
         return z, (iters, res, polished, converged)
 
@@ -467,18 +546,11 @@ def _make_zstar(kind, n, dims, rtol, max_iter):
 # ------------------------------------------------------------------------- solver
 
 
-def _broadcast(name, x, p, dtype):
-    x = jnp.asarray(x).astype(dtype)
-    if x.ndim == 1 and x.shape[0] != p:
-        raise ValueError(f"{name} has {x.shape[0]} values but there are {p} sensors (dims has length {p})")
-    return jnp.broadcast_to(x, (p,))
-
-
 def marginal_mmse(
     cov: Float[ArrayLike, "d d"],
     n: int,
     dims: tuple[int, ...],
-    set: MarginalMoment | MarginalKL,  # noqa: A002  (name fixed by the API)
+    set: AbstractMarginalSet,  # noqa: A002  (name fixed by the API)
     *,
     rtol: float | None = None,
     max_iter: int = 500,
@@ -496,8 +568,8 @@ def marginal_mmse(
     (eq. 32). Differentiable (forward and reverse) w.r.t. `cov` and the radii; see the
     module docstring for the method and the degenerate cases.
     """
-    if not isinstance(set, (MarginalMoment, MarginalKL)):
-        raise ValueError(f"set must be a MarginalMoment or MarginalKL, got {type(set).__name__}")
+    if not isinstance(set, AbstractMarginalSet):
+        raise ValueError(f"set must be a marginal set (jdrkf.sets.MarginalMoment, MarginalKL), got {type(set).__name__}")
     cov = as_float_array("cov", cov, (2,))
     check_covariance("cov", cov)
     if not isinstance(dims, (tuple, list)) or len(dims) == 0 or not all(isinstance(d, (int, np.integer)) and d >= 1 for d in dims):
@@ -508,24 +580,16 @@ def marginal_mmse(
     d = n + sum(dims)
     if cov.shape != (d, d):
         raise ValueError(f"cov has shape {tuple(cov.shape)} but expected ({d}, {d}) (n = {n}, dims = {dims})")
-    p = len(dims)
-    dtype = cov.dtype
-    if isinstance(set, MarginalMoment):
-        kind = "moment"
-        params = (_broadcast("gamma1", set.gamma1, p, dtype), _broadcast("gamma2", set.gamma2, p, dtype))
-    else:
-        kind = "kl"
-        params = (_broadcast("c", set.c, p, dtype),)
-    rtol = default_rtol(dtype) if rtol is None else float(rtol)
-    sol = _marginal_mmse(cov, params, n, dims, kind, rtol, int(max_iter))
+    rtol = default_rtol(cov.dtype) if rtol is None else float(rtol)
+    sol = _marginal_mmse(cov, set.broadcast(len(dims), cov.dtype), n, dims, rtol, int(max_iter))
     return eqx.tree_at(lambda s: s.converged, sol, sol.converged & set.valid())
 
 
 @eqx.filter_jit
-def _marginal_mmse(cov, params, n, dims, kind, rtol, max_iter):
+def _marginal_mmse(cov, set_, n, dims, rtol, max_iter):
     g = _whitening(cov, n, dims)
-    zstar = _make_zstar(kind, n, dims, rtol, max_iter)
-    z, (iters, res, polished, converged) = zstar(g, params)
+    zstar = _make_zstar(n, dims, rtol, max_iter)
+    z, (iters, res, polished, converged) = zstar(g, set_)
     s = linalg.symmetrize(g @ z @ g.T)
     k = linalg.psd_solve(s[n:, n:], s[n:, :n]).T
     post = linalg.symmetrize(s[:n, :n] - k @ s[n:, :n])
