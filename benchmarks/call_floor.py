@@ -92,7 +92,7 @@ def toy_newton(d: int, iters: int):
 
 def kkt_newton(c, w, v, tx, tv, iters: int):
     """A jittable `A ↦ z` running `iters` Newton steps on jdrkf's optimality system of (14)."""
-    from jdrkf.filters._wasserstein_dr import _initial_guess, _stationary_residual
+    from jdrkf.sets._steady_state import _initial_guess, _stationary_residual
 
     return lambda a: newton_loop(_stationary_residual(a, c, w, v, tx, tv), _initial_guess(a, c, w, v), iters)
 

@@ -60,14 +60,14 @@ _EXPORTS: dict[str, str] = {
     "STKF_AR1": ".filters",
     "STKF_AR2": ".filters",
     "SmootherResult": ".filters",
-    "SteadyStateDR": ".filters",
+    "SteadyStateDR": ".sets",
     "SteadyStateDRKF": ".filters",
     "SteadyStateGain": ".filters",
     "SteadyStateKalmanFilter": ".filters",
     "StepOutput": ".filters",
     "TauKF": ".filters",
     "UnscentedKF": ".filters",
-    "ThetaMax": ".filters",
+    "ThetaMax": ".sets",
     "VBKF": ".filters",
     "WassersteinDRKF": ".filters",
     "WassersteinKF": ".filters",
@@ -76,7 +76,7 @@ _EXPORTS: dict[str, str] = {
     "smooth": ".filters",
     "parallel_smooth": ".filters",
     "predict": ".filters",
-    "theta_max": ".filters",
+    "theta_max": ".sets",
     "update": ".filters",
 }
 
@@ -162,14 +162,12 @@ if TYPE_CHECKING:  # static analysers and IDEs see the eager imports
         STKF_AR1 as STKF_AR1,
         STKF_AR2 as STKF_AR2,
         SmootherResult as SmootherResult,
-        SteadyStateDR as SteadyStateDR,
         SteadyStateDRKF as SteadyStateDRKF,
         SteadyStateGain as SteadyStateGain,
         SteadyStateKalmanFilter as SteadyStateKalmanFilter,
         StepOutput as StepOutput,
         TauKF as TauKF,
         UnscentedKF as UnscentedKF,
-        ThetaMax as ThetaMax,
         VBKF as VBKF,
         WassersteinDRKF as WassersteinDRKF,
         WassersteinKF as WassersteinKF,
@@ -178,7 +176,11 @@ if TYPE_CHECKING:  # static analysers and IDEs see the eager imports
         smooth as smooth,
         parallel_smooth as parallel_smooth,
         predict as predict,
-        theta_max as theta_max,
         update as update,
+    )
+    from .sets import (
+        SteadyStateDR as SteadyStateDR,
+        ThetaMax as ThetaMax,
+        theta_max as theta_max,
     )
     from . import experiments, filters, linalg, metrics, plotting, sets, tuning

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import jdrkf
-from jdrkf.filters._bcot import BCOTKF, bcot_worst_case
+from jdrkf.filters._bcot import BCOTKF
+from jdrkf.sets import bcot_worst_case
 
 from bcot_oracle import bcot_sdp, budget, posterior_trace
 from oracles import numpy_kalman_filter
@@ -251,3 +252,20 @@ def test_filter_gradients():
     for r in (0.05, 0.3):
         fd = (value(jnp.asarray(r + 1e-6)) - value(jnp.asarray(r - 1e-6))) / 2e-6
         np.testing.assert_allclose(grad(jnp.asarray(r)), fd, rtol=1e-6)
+
+
+def test_bcot_set_object_matches_the_function_and_checks_its_radius():
+    """`jdrkf.sets.BCOT(radius).worst_case` is `bcot_worst_case` without the eager checks;
+    the filter holds the set (`BCOTKF(r).set.radius == r`, `.radius` reads it)."""
+    sp, qp, rp, a, c = _instance(np.random.default_rng(7), 2, 1)
+    ref = bcot_worst_case(sp, qp, rp, a, c, 0.4)
+    sol = jdrkf.sets.BCOT(0.4).worst_case(*(jnp.asarray(x) for x in (sp, qp, rp, a, c)), 100)
+    for field in ("prior_cov", "process_cov", "noise_cov", "value"):
+        np.testing.assert_allclose(getattr(sol, field), getattr(ref, field), rtol=1e-12, atol=1e-14)
+    assert bool(sol.converged)
+    flt = BCOTKF(0.4)
+    assert isinstance(flt.set, jdrkf.sets.BCOT) and float(flt.radius) == 0.4
+    assert bool(jdrkf.sets.BCOT(0.0).valid())
+    assert not bool(jax.jit(lambda r: eqx.tree_at(lambda s: s.radius, jdrkf.sets.BCOT(0.1), r).valid())(-0.1))
+    with pytest.raises(ValueError, match="radius"):
+        jdrkf.sets.BCOT(-1.0)

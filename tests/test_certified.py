@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 import jdrkf
-from jdrkf.filters import bcot_worst_case, ci_weights, theta_max
-from jdrkf.sets import KL, Wasserstein, maxent_kl_solve, worst_case
+from jdrkf.sets import KL, Wasserstein, bcot_worst_case, ci_weights, maxent_kl_solve, theta_max, worst_case
 from stationary_oracle import stationary_sdp
 
 # A random 2-state system with a nearly singular process noise (eigenvalues 1e-8 and

@@ -11,7 +11,8 @@ import scipy.linalg
 
 import jdrkf
 from jdrkf._multisensor import MultiSensorModel, _simulate_multisensor
-from jdrkf.filters._fusion import CKF, CovarianceIntersection, MarginalDRKF, covariance_intersection
+from jdrkf.filters._fusion import CKF, CovarianceIntersection, MarginalDRKF
+from jdrkf.sets import covariance_intersection
 from jdrkf.sets._marginal import MarginalKL, MarginalMoment
 
 import fusion_oracle as fo

@@ -205,3 +205,27 @@ def test_no_private_names_across_modules():
     for name, (path, is_pkg) in modules.items():
         found += private_uses(name, is_pkg, ast.parse(path.read_text(encoding="utf-8")), modules)
     assert not found, "private names used across modules:\n" + "\n".join(found)
+
+
+def test_worst_case_solvers_live_in_sets_and_old_filter_names_warn():
+    """Issue 19: worst-case problems are in `jdrkf.sets`; the names that moved out of
+    `jdrkf.filters` still resolve there, with a DeprecationWarning, to the same objects."""
+    import warnings
+
+    import pytest
+
+    import jdrkf
+
+    moved = ("BCOTWorstCase", "bcot_worst_case", "CIWeights", "ci_weights", "covariance_intersection",
+             "SteadyStateDR", "ThetaMax", "theta_max")
+    for name in moved:
+        new = getattr(jdrkf.sets, name)
+        assert new.__module__.startswith("jdrkf.sets."), (name, new.__module__)
+        with pytest.warns(DeprecationWarning, match=f"jdrkf.sets.{name}"):
+            old = getattr(jdrkf.filters, name)
+        assert old is new
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert jdrkf.theta_max is jdrkf.sets.theta_max and jdrkf.SteadyStateDR is jdrkf.sets.SteadyStateDR
+    with pytest.raises(AttributeError, match="no_such_name"):
+        jdrkf.filters.no_such_name  # noqa: B018

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from jdrkf.filters._theta_max import ThetaMax, theta_max
+from jdrkf.sets import ThetaMax, theta_max
 
 
 # --- independent NumPy oracle ----------------------------------------------------------------

@@ -15,7 +15,8 @@ import pytest
 
 import jdrkf
 from jdrkf._nonlinear import NonlinearModel
-from jdrkf.filters._bcot import BCOTKF, bcot_worst_case
+from jdrkf.filters._bcot import BCOTKF
+from jdrkf.sets import bcot_worst_case
 from jdrkf.filters._divergence import RiskSensitiveKF, TauKF
 from jdrkf.filters._reweighted import RBKF, STKF, STKF_AR1, VBKF
 from jdrkf.sets import Barron, GaussianKernel

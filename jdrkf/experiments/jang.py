@@ -39,8 +39,8 @@ from ..filters import (
     SteadyStateDRKF,
     SteadyStateKalmanFilter,
     WassersteinDRKF,
-    theta_max,
 )
+from ..sets import theta_max
 from ._registry import Experiment, Report, Row, Sweep, register
 from ._tune import TuningProblem
 

@@ -24,11 +24,9 @@ from ._reweighted import (
     VBKF as VBKF,
     irls_update as irls_update,
 )
-from ._bcot import BCOTKF as BCOTKF, BCOTWorstCase as BCOTWorstCase, bcot_worst_case as bcot_worst_case
-from ._theta_max import ThetaMax as ThetaMax, theta_max as theta_max
+from ._bcot import BCOTKF as BCOTKF
 from ._wasserstein_dr import (
     CovarianceRecursion as CovarianceRecursion,
-    SteadyStateDR as SteadyStateDR,
     SteadyStateDRKF as SteadyStateDRKF,
     WassersteinDRKF as WassersteinDRKF,
 )
@@ -39,11 +37,20 @@ from . import _resampling as resampling  # noqa: F401 (public namespace: resampl
 from ._dr_particle import DRParticleFilter as DRParticleFilter
 from ._smoother import RTSSmoother as RTSSmoother, SmootherResult as SmootherResult, rts_backward as rts_backward, smooth as smooth
 from ._parallel import ParallelKalmanFilter as ParallelKalmanFilter, parallel_smooth as parallel_smooth
-from ._fusion import (
-    CKF as CKF,
-    CIWeights as CIWeights,
-    CovarianceIntersection as CovarianceIntersection,
-    MarginalDRKF as MarginalDRKF,
-    ci_weights as ci_weights,
-    covariance_intersection as covariance_intersection,
-)
+from ._fusion import CKF as CKF, CovarianceIntersection as CovarianceIntersection, MarginalDRKF as MarginalDRKF
+
+# Worst-case problems that moved to `jdrkf.sets`; the old names here are deprecated
+# aliases for one release.
+_MOVED_TO_SETS = ("BCOTWorstCase", "bcot_worst_case", "CIWeights", "ci_weights", "covariance_intersection",
+                  "SteadyStateDR", "ThetaMax", "theta_max")
+
+
+def __getattr__(name: str):
+    if name in _MOVED_TO_SETS:
+        import warnings
+
+        from .. import sets
+
+        warnings.warn(f"jdrkf.filters.{name} is deprecated; use jdrkf.sets.{name}", DeprecationWarning, stacklevel=2)
+        return getattr(sets, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,7 +1,9 @@
 """Ambiguity sets, outlier models and their worst-case solvers."""
 
 from ._base import AbstractAmbiguitySet as AbstractAmbiguitySet
+from ._bcot import BCOT as BCOT, BCOTWorstCase as BCOTWorstCase, bcot_worst_case as bcot_worst_case
 from ._divergence import KL as KL
+from ._intersection import CIWeights as CIWeights, ci_weights as ci_weights, covariance_intersection as covariance_intersection
 from ._marginal import (
     AbstractMarginalSet as AbstractMarginalSet,
     MarginalKL as MarginalKL,
@@ -34,6 +36,8 @@ from ._solve import (
     worst_case as worst_case,
     worst_case_joint as worst_case_joint,
 )
+from ._steady_state import SteadyStateDR as SteadyStateDR, steady_state_worst_case as steady_state_worst_case
+from ._theta_max import ThetaMax as ThetaMax, theta_max as theta_max
 from ._wasserstein import Wasserstein as Wasserstein
 from ._weights import (
     AbstractWeight as AbstractWeight,
