@@ -14,8 +14,9 @@ tuning problems, `jdrkf.experiments.<module>.tuning_problems`, the ones `jdrkf t
 - `chen`: `MarginalDRKF(MarginalKL(c))` with one KL radius per sensor (3 sensors) on
   Chen et al.'s correlated-sensor fusion problem (text settings); mean squared error.
 - `wang2022`: `DRParticleFilter` (Wang 2022) on the growth model with the mismatched
-  measurement: Wasserstein prior radius (Method 1), likelihood inflation θ (Method 3) and
-  the outlier threshold ε (Method 6, "drop"); mean RMSE, common random numbers (fixed
+  measurement: Wasserstein prior radius (`sets.ParticleWasserstein`, Method 1), likelihood
+  inflation θ (`sets.InflatedLikelihood`, Method 3) and the outlier threshold ε
+  (`DropOutliers`, Method 6); mean RMSE, common random numbers (fixed
   key per run; resampling differentiated by the stop-gradient score estimator).
 - `jang`: `SteadyStateDRKF(θx, θv)` on Jang et al.'s closed-loop LQR tracking problem
   (Gaussian setting) with per-run EM nominal covariances multiplied by a tuned scale `s`;

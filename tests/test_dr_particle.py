@@ -19,8 +19,17 @@ from scipy.special import logsumexp as np_lse
 from jdrkf._gaussian import Gaussian
 from jdrkf._noise import MixtureNoise
 from jdrkf._nonlinear import NonlinearModel, _simulate_nonlinear
-from jdrkf.filters._dr_particle import DRParticleFilter, _augmented_loglik, _continuous_loglik
+from jdrkf.filters._dr_particle import DRParticleFilter, DropOutliers, NearestOutliers
 from jdrkf.filters._particle import BootstrapPF
+from jdrkf.sets import (
+    AugmentedWassersteinLikelihood,
+    InflatedLikelihood,
+    ParticleKL,
+    ParticleWasserstein,
+    ParticleWassersteinSample,
+    WassersteinLikelihood,
+)
+from jdrkf.sets._particle import _augmented_loglik, _continuous_loglik
 
 T = 15
 
@@ -73,13 +82,13 @@ def _run(flt, model, ys, key, observed=None):
     [("systematic", 0.5, "weighted_mean"), pytest.param("multinomial", 1.0, "resampled_mean", marks=pytest.mark.slow)],
 )
 def test_reduces_to_bootstrap(data, resampling, ess, estimate):
-    """prior="none", θ = 1, no outlier treatment: bitwise BootstrapPF with the same key
+    """No prior, θ = 1, no outlier treatment: bitwise BootstrapPF with the same key
     (the second case is the authors' resampling scheme and estimate)."""
     ys = data[0][0]
     key = jax.random.key(3)
     opts = dict(resampling=resampling, ess_threshold=ess, estimate=estimate)
     ref = _run(BootstrapPF(100, **opts, outputs="all"), _growth(), ys, key)
-    out = _run(DRParticleFilter(100, theta=1.0, **opts, outputs="all"), _growth(), ys, key)
+    out = _run(DRParticleFilter(100, likelihood=InflatedLikelihood(1.0), **opts, outputs="all"), _growth(), ys, key)
     for a, b in [
         (ref.filtered_means, out.filtered_means),
         (ref.filtered_covariances, out.filtered_covariances),
@@ -96,23 +105,23 @@ def test_inflation_equals_pf_with_inflated_noise(data):
     key); for Gaussian noise and for a Gaussian mixture law (both components scaled)."""
     ys, theta = data[0][1], 5.0
     key = jax.random.key(11)
-    out = _run(DRParticleFilter(100, theta=theta, outputs="all"), _growth(), ys, key)
+    out = _run(DRParticleFilter(100, likelihood=InflatedLikelihood(theta), outputs="all"), _growth(), ys, key)
     ref = _run(BootstrapPF(100, outputs="all"), _growth(r=theta), ys, key)
     np.testing.assert_allclose(out.filtered_means, ref.filtered_means, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(out.loglik_increments, ref.loglik_increments, rtol=1e-10)
     mix = lambda s: MixtureNoise(s * jnp.eye(1), 0.1, 10.0)  # noqa: E731
-    out = _run(DRParticleFilter(100, theta=theta, outputs="all"), _growth(measurement_noise=mix(1.0)), ys, key)
+    out = _run(DRParticleFilter(100, likelihood=InflatedLikelihood(theta), outputs="all"), _growth(measurement_noise=mix(1.0)), ys, key)
     ref = _run(BootstrapPF(100, outputs="all"), _growth(measurement_noise=mix(theta)), ys, key)
     np.testing.assert_allclose(out.filtered_means, ref.filtered_means, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(out.loglik_increments, ref.loglik_increments, rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize("prior", ["kl", "wasserstein"])
-def test_prior_radius_zero_is_bootstrap(data, prior):
+@pytest.mark.parametrize("prior", [ParticleKL, ParticleWasserstein], ids=["kl", "wasserstein"])
+def test_zero_radius_prior_is_bootstrap(data, prior):
     ys = data[0][0]
     key = jax.random.key(5)
     ref = _run(BootstrapPF(100, outputs="all"), _growth(), ys, key)  # compiled already by test_reduces_to_bootstrap
-    out = _run(DRParticleFilter(100, prior=prior, prior_radius=0.0, theta=1.0, outputs="all"), _growth(), ys, key)
+    out = _run(DRParticleFilter(100, prior=prior(0.0), likelihood=InflatedLikelihood(1.0), outputs="all"), _growth(), ys, key)
     np.testing.assert_allclose(out.filtered_means, ref.filtered_means, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(out.loglik_increments, ref.loglik_increments, rtol=1e-9, atol=1e-9)
 
@@ -157,7 +166,8 @@ def test_method1_prior_weights_match_oracle(data, prior):
     the previous posterior weights (no resampling, so those are not uniform)."""
     ys = data[0][0][:8]
     radius = 0.05 if prior == "kl" else 0.3
-    flt = DRParticleFilter(40, prior=prior, prior_radius=radius, theta=1.0, ess_threshold=0.0, return_particles=True, outputs="all")
+    make = ParticleKL if prior == "kl" else ParticleWasserstein
+    flt = DRParticleFilter(40, prior=make(radius), likelihood=InflatedLikelihood(1.0), ess_threshold=0.0, return_particles=True, outputs="all")
     out = _run(flt, _growth(), ys, jax.random.key(2))
     prev = np.exp(np.asarray(out.info["log_weights"]))
     got = np.exp(np.asarray(out.info["prior_log_weights"]))
@@ -181,7 +191,7 @@ def test_method2_samples(getkey):
     of the samples follows q (chi-square over 200 draws)."""
     q = np.array([0.4, 0.3, 0.15, 0.1, 0.05])
     atoms = jnp.asarray(np.arange(5.0)[:, None] * 1.0)
-    flt = DRParticleFilter(5, prior="wasserstein_sample", prior_radius=0.02, num_integration_points=300)
+    flt = DRParticleFilter(5, prior=ParticleWassersteinSample(0.02, num_integration_points=300))
     draw = jax.jit(lambda k: flt._worst_case_prior(atoms, jnp.log(jnp.asarray(q)), k))
     counts = np.zeros(5)
     for _ in range(40):
@@ -197,7 +207,7 @@ def test_method2_samples(getkey):
 
 @pytest.mark.slow
 def test_method2_filter_runs(data):
-    flt = DRParticleFilter(30, prior="wasserstein_sample", prior_radius=0.5, num_integration_points=300, return_particles=True, outputs="all")
+    flt = DRParticleFilter(30, prior=ParticleWassersteinSample(0.5, num_integration_points=300), return_particles=True, outputs="all")
     out = _run(flt, _growth(), data[0][0][:4], jax.random.key(0))
     assert np.all(np.isfinite(out.filtered_means))
     np.testing.assert_allclose(np.exp(np.asarray(out.info["prior_log_weights"])), 1 / 30, rtol=1e-12)
@@ -259,8 +269,12 @@ def test_method4_small_radius_kernel_limit(dim):
 def test_methods45_nonadditive_run(likelihood):
     model = _nonadditive()
     tr = _simulate_nonlinear(jax.random.key(4), model, PRIOR, 5, 1)
-    small = dict(num_likelihood_particles=8, num_integration_points=200)
-    flt = DRParticleFilter(20, likelihood=likelihood, likelihood_radius=0.3, **small, outputs="all")
+    def make(radius):
+        if likelihood == "wasserstein":
+            return WassersteinLikelihood(radius, num_particles=8, num_integration_points=200)
+        return AugmentedWassersteinLikelihood(radius, num_particles=8)
+
+    flt = DRParticleFilter(20, likelihood=make(0.3), outputs="all")
     ys = tr.observations[0].at[2].set(jnp.nan)  # a missing y (masked): no update, loglik 0
     out = _run(flt, model, ys, jax.random.key(1), ~jnp.isnan(ys))
     assert np.all(np.isfinite(out.filtered_means)) and np.all(np.isfinite(out.loglik_increments))
@@ -269,7 +283,7 @@ def test_methods45_nonadditive_run(likelihood):
     assert not np.allclose(out.filtered_means, out.predicted_means)  # the likelihood does move the cloud
     # A radius beyond C(0) makes the Method-5 likelihood flat: posterior = prior weights.
     if likelihood == "wasserstein_augmented":
-        flat = DRParticleFilter(20, likelihood=likelihood, likelihood_radius=1e6, **small, outputs="all")
+        flat = DRParticleFilter(20, likelihood=make(1e6), outputs="all")
         out = _run(flat, model, tr.observations[0], jax.random.key(1))
         np.testing.assert_allclose(out.filtered_means, out.predicted_means, rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(out.loglik_increments, -math.log(9), rtol=1e-10)
@@ -287,13 +301,13 @@ def test_inflate_needs_additive_model():
 def test_outlier_drop(data):
     ys, theta = data[0][0], 5.0
     key = jax.random.key(9)
-    base = _run(DRParticleFilter(100, theta=theta, outputs="all"), _growth(), ys, key)
-    gated = _run(DRParticleFilter(100, theta=theta, outlier="drop", outputs="all"), _growth(), ys, key)
+    base = _run(DRParticleFilter(100, likelihood=InflatedLikelihood(theta), outputs="all"), _growth(), ys, key)
+    gated = _run(DRParticleFilter(100, likelihood=InflatedLikelihood(theta), outlier=DropOutliers(), outputs="all"), _growth(), ys, key)
     for a, b in [(base.filtered_means, gated.filtered_means), (base.loglik_increments, gated.loglik_increments)]:
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # no outlier: identical
     assert not np.any(np.asarray(gated.info["outlier"]))
     bad = ys.at[7, 0].set(1e3)
-    out = _run(DRParticleFilter(100, theta=theta, outlier="drop", outputs="all"), _growth(), bad, key)
+    out = _run(DRParticleFilter(100, likelihood=InflatedLikelihood(theta), outlier=DropOutliers(), outputs="all"), _growth(), bad, key)
     flags = np.asarray(out.info["outlier"])
     assert flags[7] and flags.sum() == 1
     np.testing.assert_allclose(out.filtered_means[7], out.predicted_means[7], rtol=1e-12)
@@ -308,7 +322,7 @@ def test_outlier_nearest(data):
     h(x*) + v^r, i.e. a little above h(x*), not 1e3."""
     ys, theta = data[0][0], 5.0
     bad = ys.at[7, 0].set(1e3)
-    flt = DRParticleFilter(80, theta=theta, outlier="nearest", ess_threshold=0.0, return_particles=True, outputs="all")
+    flt = DRParticleFilter(80, likelihood=InflatedLikelihood(theta), outlier=NearestOutliers(), ess_threshold=0.0, return_particles=True, outputs="all")
     out = _run(flt, _growth(), bad, jax.random.key(9))
     flags = np.asarray(out.info["outlier"])
     assert flags[7] and flags.sum() == 1
@@ -331,19 +345,19 @@ def _rtamse(flt, model, ys, xs, key):
 
 
 @pytest.mark.parametrize(
-    "field,kwargs,value",
+    "field,make,value",
     [
-        ("theta", dict(), 3.0),
-        ("prior_radius", dict(prior="kl", theta=2.0), 0.05),
+        ("inflation", lambda v: dict(likelihood=InflatedLikelihood(v)), 3.0),
+        ("prior radius", lambda v: dict(prior=ParticleKL(v), likelihood=InflatedLikelihood(2.0)), 0.05),
         pytest.param(
-            "likelihood_radius",
-            dict(likelihood="wasserstein_augmented", num_likelihood_particles=10),
+            "likelihood radius",
+            lambda v: dict(likelihood=AugmentedWassersteinLikelihood(v, num_particles=10)),
             0.3,
             marks=pytest.mark.slow,
         ),
     ],
 )
-def test_gradient_matches_finite_differences(data, field, kwargs, value):
+def test_gradient_matches_finite_differences(data, field, make, value):
     """Without resampling (ess_threshold=0) the filter is smooth in its radii for a fixed
     key: reverse-mode gradient = central differences. (With resampling the ancestor
     indices carry no gradient, so the gradient ignores their dependence on θ: biased.)"""
@@ -351,7 +365,7 @@ def test_gradient_matches_finite_differences(data, field, kwargs, value):
     key = jax.random.key(4)
 
     def loss(v):
-        flt = DRParticleFilter(30, ess_threshold=0.0, **{field: v}, **kwargs)
+        flt = DRParticleFilter(30, ess_threshold=0.0, **make(v))
         return _rtamse(flt, _growth(), ys, xs, key)
 
     vg = jax.jit(jax.value_and_grad(loss))  # one compilation for the gradient and both FD points
@@ -360,14 +374,18 @@ def test_gradient_matches_finite_differences(data, field, kwargs, value):
     eps = 1e-5 * value
     fd = (float(vg(v + eps)[0]) - float(vg(v - eps)[0])) / (2 * eps)
     assert abs(g) > 1e-6
-    np.testing.assert_allclose(g, fd, rtol=1e-6 if field == "theta" else 1e-5)
+    np.testing.assert_allclose(g, fd, rtol=1e-6 if field == "inflation" else 1e-5)
 
 
-@pytest.mark.parametrize("likelihood", ["inflate", pytest.param("wasserstein_augmented", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "likelihood",
+    [InflatedLikelihood(), pytest.param(AugmentedWassersteinLikelihood(num_particles=10), marks=pytest.mark.slow)],
+    ids=["inflated", "wasserstein_augmented"],
+)
 def test_vmap_over_runs_and_keys(data, likelihood):
     ys = data[0]
     keys = jax.random.split(jax.random.key(8), ys.shape[0])
-    flt = DRParticleFilter(40, likelihood=likelihood, num_likelihood_particles=10)
+    flt = DRParticleFilter(40, likelihood=likelihood)
     batch = jax.jit(jax.vmap(flt, in_axes=(None, None, 0, 0)))(_growth(), PRIOR, ys, keys)
     for i in range(ys.shape[0]):
         one = _run(flt, _growth(), ys[i], keys[i])
@@ -378,7 +396,7 @@ def test_missing_observation_keeps_weights(data):
     """An all-NaN y, masked by `observed`: no update (posterior = prior), loglik increment 0, not an outlier.
     (Same configuration as `test_outlier_drop`.)"""
     ys = data[0][0].at[3].set(jnp.nan)
-    out = _run(DRParticleFilter(100, theta=5.0, outlier="drop", outputs="all"), _growth(), ys, jax.random.key(1), ~jnp.isnan(ys))
+    out = _run(DRParticleFilter(100, likelihood=InflatedLikelihood(5.0), outlier=DropOutliers(), outputs="all"), _growth(), ys, jax.random.key(1), ~jnp.isnan(ys))
     np.testing.assert_allclose(out.filtered_means[3], out.predicted_means[3], rtol=1e-12)
     assert float(out.loglik_increments[3]) == 0.0 and not bool(out.info["outlier"][3])
 
@@ -386,17 +404,12 @@ def test_missing_observation_keeps_weights(data):
 def test_bad_arguments():
     for kwargs, match in [
         (dict(num_particles=0), "num_particles"),
-        (dict(prior="huber"), "prior"),
-        (dict(likelihood="kl"), "likelihood"),
-        (dict(outlier="clip"), "outlier"),
+        (dict(prior=ParticleKL), "prior"),
+        (dict(likelihood=ParticleKL(0.1)), "likelihood"),
+        (dict(outlier=1e-6), "outlier"),
         (dict(resampling="foo"), "resampling"),
-        (dict(theta=0.0), "theta"),
         (dict(ess_threshold=1.5), "ess_threshold"),
         (dict(estimate="median"), "estimate"),
-        (dict(prior_radius=-1.0), "prior_radius"),
-        (dict(likelihood="wasserstein", likelihood_radius=0.0), "likelihood_radius"),
-        (dict(num_likelihood_particles=0), "num_likelihood_particles"),
-        (dict(theta=jnp.ones(2)), "theta"),
     ]:
         n = kwargs.pop("num_particles", 10)
         with pytest.raises(ValueError, match=match):

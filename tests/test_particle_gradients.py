@@ -19,8 +19,9 @@ import pytest
 import jdrkf
 from jdrkf._nonlinear import NonlinearModel
 from jdrkf.experiments.wang_nonlinear import growth_f, growth_h
-from jdrkf.filters._dr_particle import DRParticleFilter
+from jdrkf.filters._dr_particle import DRParticleFilter, DropOutliers
 from jdrkf.filters._particle import BootstrapPF
+from jdrkf.sets import InflatedLikelihood, ParticleKL
 
 T, N, RUNS = 5, 32, 2000
 THETA0 = np.array([0.8, 0.5, 0.3])  # (a, q, r): x_k = a x_{k-1} + w, w ~ N(0, q); y_k = x_k + v, v ~ N(0, r)
@@ -94,7 +95,7 @@ def test_bootstrap_likelihood_gradient_unbiased(ys):
 
 
 def test_dr_particle_theta_gradient_unbiased(ys):
-    """`DRParticleFilter(prior="none", likelihood="inflate")` is a bootstrap PF of the model
+    """`DRParticleFilter(likelihood=InflatedLikelihood(θ))` (no prior) is a bootstrap PF of the model
     with `R → θR`: its `∇ p̂` w.r.t. the model and `θ` averages to the KF's gradient of
     `p(y; θR)` (multinomial resampling at every step)."""
     theta = 1.5
@@ -106,7 +107,7 @@ def test_dr_particle_theta_gradient_unbiased(ys):
     np.testing.assert_allclose(exact_theta, fd, rtol=1e-6)
 
     def one(p, key):
-        flt = DRParticleFilter(N, theta=p[3], resampling="multinomial", ess_threshold=1.0, throw=False)
+        flt = DRParticleFilter(N, likelihood=InflatedLikelihood(p[3]), resampling="multinomial", ess_threshold=1.0, throw=False)
         return flt(_nonlinear(p[:3]), PRIOR, ys, key).marginal_loglik
 
     keys = jax.random.split(jax.random.key(2), RUNS)
@@ -139,7 +140,7 @@ def _growth():
     "make",
     [
         lambda mode: BootstrapPF(64, ess_threshold=0.5, resampling_gradient=mode, return_particles=True, outputs="all"),
-        lambda mode: DRParticleFilter(64, prior="kl", prior_radius=0.05, theta=2.0, outlier="drop",
+        lambda mode: DRParticleFilter(64, prior=ParticleKL(0.05), likelihood=InflatedLikelihood(2.0), outlier=DropOutliers(),
                                       resampling="multinomial", ess_threshold=1.0, estimate="resampled_mean",
                                       resampling_gradient=mode, return_particles=True, outputs="all"),
     ],

@@ -21,6 +21,7 @@ from jdrkf._nonlinear import NonlinearModel
 from jdrkf.filters import resampling as rs
 from jdrkf.filters._dr_particle import DRParticleFilter
 from jdrkf.filters._particle import BootstrapPF
+from jdrkf.sets import InflatedLikelihood
 
 SCHEMES = ["multinomial", "systematic", "stratified", "residual"]
 N = 6
@@ -101,7 +102,7 @@ PRIOR = jdrkf.Gaussian(jnp.zeros(1), jnp.eye(1))
 @pytest.mark.parametrize(
     "make",
     [lambda throw: BootstrapPF(50, ess_threshold=1.0, throw=throw),
-     pytest.param(lambda throw: DRParticleFilter(50, theta=2.0, ess_threshold=1.0, throw=throw), marks=pytest.mark.slow)],
+     pytest.param(lambda throw: DRParticleFilter(50, likelihood=InflatedLikelihood(2.0), ess_threshold=1.0, throw=throw), marks=pytest.mark.slow)],
     ids=["bootstrap", "dr"],
 )
 def test_filter_with_nan_weights_reports_failure(make):

@@ -91,7 +91,7 @@ FAMILIES = [
     pytest.param("rbkf_barron", _linear, lambda p, throw: RBKF(process_weight=Barron(p), throw=throw), 1.0, 2.5, marks=SLOW),
     pytest.param("marginal_moment", _multisensor, lambda p, throw: jdrkf.MarginalDRKF(MarginalMoment(0.9, p), throw=throw), 1.1, 0.9, marks=SLOW),
     pytest.param("marginal_kl", _multisensor, lambda p, throw: jdrkf.MarginalDRKF(MarginalKL(p), throw=throw), 0.05, -0.05, marks=SLOW),
-    pytest.param("dr_particle_theta", _nonlinear, lambda p, throw: jdrkf.DRParticleFilter(16, theta=p, throw=throw), 2.0, -2.0, marks=SLOW),
+    pytest.param("dr_particle_theta", _nonlinear, lambda p, throw: jdrkf.DRParticleFilter(16, likelihood=jdrkf.sets.InflatedLikelihood(p), throw=throw), 2.0, -2.0, marks=SLOW),
 ]
 IDS = [f.values[0] if hasattr(f, "values") else f[0] for f in FAMILIES]
 

@@ -52,9 +52,10 @@ from .. import _progress, metrics
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
 from .._simulate import simulate
-from ..filters._dr_particle import DRParticleFilter
+from ..filters._dr_particle import DRParticleFilter, DropOutliers, NearestOutliers
 from ..filters._particle import BootstrapPF
 from ..filters._unscented import EnsembleKF, UnscentedKF
+from ..sets._particle import AugmentedWassersteinLikelihood, InflatedLikelihood, ParticleWasserstein
 from ._registry import Experiment, Report, Row, Sweep, register
 from ._tune import TuningProblem
 
@@ -117,7 +118,7 @@ def _pf(n):
 
 
 def _rpf(n, theta=RPF_THETA):
-    return DRParticleFilter(n, likelihood="inflate", theta=theta, outlier="drop", outlier_threshold=GATE, resampling="multinomial", ess_threshold=1.0, throw=False)
+    return DRParticleFilter(n, likelihood=InflatedLikelihood(theta), outlier=DropOutliers(GATE), resampling="multinomial", ess_threshold=1.0, throw=False)
 
 
 @eqx.filter_jit
@@ -237,7 +238,7 @@ def run_methods(runs: int = 100, seed: int = 0, progress: bool = False, curves: 
     additive = NonlinearModel(growth_f, growth_h, q, jnp.asarray([[r_add]]))
     vals = {"PF (additive assumption)": _rtamse(traj.states, _run_batch(_pf(particles), additive, prior, traj.observations, keys), [0])}
     for rad in radii:
-        flt = DRParticleFilter(particles, likelihood="wasserstein_augmented", likelihood_radius=rad, num_likelihood_particles=50, resampling="multinomial", ess_threshold=1.0, throw=False)
+        flt = DRParticleFilter(particles, likelihood=AugmentedWassersteinLikelihood(rad, num_particles=50), resampling="multinomial", ess_threshold=1.0, throw=False)
         vals[f"DRPF Method 5 (radius {rad:g})"] = _rtamse(traj.states, _run_batch(flt, true, prior, traj.observations, keys), [0])
     for name, v in vals.items():
         rows.append(Row.from_values(name, "RTAMSE [non-additive y = (x+v)²/20]", None, v))
@@ -249,8 +250,8 @@ def run_methods(runs: int = 100, seed: int = 0, progress: bool = False, curves: 
     filters = {
         "PF": _pf(particles),
         "RPF θ=5 (gate 1e-6, authors)": _rpf(particles),
-        "DRPF drop (Methods 6-7, ε=1e-3)": DRParticleFilter(particles, theta=1.0, outlier="drop", outlier_threshold=1e-3, resampling="multinomial", ess_threshold=1.0, throw=False),
-        "DRPF nearest (Methods 6-7, ε=1e-3)": DRParticleFilter(particles, theta=1.0, outlier="nearest", outlier_threshold=1e-3, resampling="multinomial", ess_threshold=1.0, throw=False),
+        "DRPF drop (Methods 6-7, ε=1e-3)": DRParticleFilter(particles, likelihood=InflatedLikelihood(1.0), outlier=DropOutliers(1e-3), resampling="multinomial", ess_threshold=1.0, throw=False),
+        "DRPF nearest (Methods 6-7, ε=1e-3)": DRParticleFilter(particles, likelihood=InflatedLikelihood(1.0), outlier=NearestOutliers(1e-3), resampling="multinomial", ess_threshold=1.0, throw=False),
     }
     for name, flt in filters.items():
         v = _rtamse(traj.states, _run_batch(flt, nominal, prior, traj.observations, keys), [0])
@@ -368,8 +369,8 @@ def tuning_problems(quick: bool = False) -> dict[str, TuningProblem]:
         return simulate(ks, models["true"], prior, num_steps, runs), jax.random.split(kf, runs)
 
     def make(values):
-        return DRParticleFilter(particles, prior="wasserstein", prior_radius=values[0], likelihood="inflate", theta=values[1],
-                                outlier="drop", outlier_threshold=values[2], throw=False)
+        return DRParticleFilter(particles, prior=ParticleWasserstein(values[0]), likelihood=InflatedLikelihood(values[1]),
+                                outlier=DropOutliers(values[2]), throw=False)
 
     def errors(values, data):
         tr, keys = data

@@ -34,7 +34,11 @@ from ._unscented import EnsembleKF as EnsembleKF, UnscentedKF as UnscentedKF, si
 from ._extended import ExtendedKF as ExtendedKF
 from ._particle import BootstrapPF as BootstrapPF, ParticleState as ParticleState, particle_moments as particle_moments
 from . import _resampling as resampling  # noqa: F401 (public namespace: resampling.systematic, .stratified, .residual, .multinomial, .ess)
-from ._dr_particle import DRParticleFilter as DRParticleFilter
+from ._dr_particle import (
+    DRParticleFilter as DRParticleFilter,
+    DropOutliers as DropOutliers,
+    NearestOutliers as NearestOutliers,
+)
 from ._smoother import RTSSmoother as RTSSmoother, SmootherResult as SmootherResult, rts_backward as rts_backward, smooth as smooth
 from ._parallel import ParallelKalmanFilter as ParallelKalmanFilter, parallel_smooth as parallel_smooth
 from ._fusion import CKF as CKF, CovarianceIntersection as CovarianceIntersection, MarginalDRKF as MarginalDRKF

@@ -13,9 +13,10 @@ from jax.scipy.special import logsumexp
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import linalg
-from .._gaussian import Gaussian, log_density
+from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
 from .._validation import check_positive_int
+from ..sets._particle import gaussian_loglik_particles, skip_incomplete
 from ._base import RESULTS, AbstractFilter, StepOutput
 from ._resampling import RESAMPLERS
 
@@ -43,32 +44,6 @@ def particle_moments(particles: Float[Array, "N n"], log_weights: Float[Array, "
     d = particles - mean
     cov = linalg.symmetrize((d * w[:, None]).T @ d)
     return Gaussian(mean, cov)
-
-
-def skip_incomplete(loglik_fn, y, observed):
-    """Per-particle log-likelihoods `loglik_fn(y)`, zero for an observation with a missing
-    entry (non-Gaussian noise laws are not marginalized)."""
-    if observed is None:
-        return loglik_fn(y)
-    complete = jnp.all(observed)
-    ll = loglik_fn(jnp.where(observed, y, jnp.zeros((), y.dtype)))
-    return jnp.where(complete, ll, jnp.zeros_like(ll))
-
-
-def gaussian_loglik_particles(model: NonlinearModel, y, hx, observed):
-    """`log N(y; h(x_i), R)` for all particles with ONE Cholesky of `R` (rows of `y` that
-    `observed` marks missing decoupled as in `jdrkf.filters._steps.masked_measurement`): all the
-    residuals enter one solve (`log_density`), so no batched LAPACK call under `vmap` over particles."""
-    r = model.R
-    if observed is not None:
-        obs_f = observed.astype(r.dtype)
-        r = r * (obs_f[:, None] * obs_f[None, :]) + jnp.diag(1.0 - obs_f)
-        resid = jnp.where(observed[None, :], y[None, :] - hx, jnp.zeros((), hx.dtype))
-        num_obs = jnp.sum(obs_f)
-    else:
-        resid = y[None, :] - hx
-        num_obs = jnp.asarray(y.shape[0], r.dtype)
-    return log_density(linalg.cholesky(linalg.symmetrize(r)), resid, num_obs)
 
 
 class BootstrapPF(AbstractFilter):

@@ -28,6 +28,16 @@ from ._outliers import (
     EpsContamination as EpsContamination,
     EpsNormal as EpsNormal,
 )
+from ._particle import (
+    AbstractParticleLikelihood as AbstractParticleLikelihood,
+    AbstractParticlePrior as AbstractParticlePrior,
+    AugmentedWassersteinLikelihood as AugmentedWassersteinLikelihood,
+    InflatedLikelihood as InflatedLikelihood,
+    ParticleKL as ParticleKL,
+    ParticleWasserstein as ParticleWasserstein,
+    ParticleWassersteinSample as ParticleWassersteinSample,
+    WassersteinLikelihood as WassersteinLikelihood,
+)
 from ._solve import (
     JointWorstCase as JointWorstCase,
     WorstCase as WorstCase,
