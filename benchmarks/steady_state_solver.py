@@ -201,7 +201,7 @@ def bench_jdrkf(args, n, m, wd, radii=True):
     solve_fn = eqx.filter_jit(lambda f, mdl: f.solve(mdl))
 
     def value_theta(tx, f, mdl):
-        return eqx.tree_at(lambda g: g.theta_x, f, tx).solve(mdl).value
+        return eqx.tree_at(lambda g: g.radius_x, f, tx).solve(mdl).value
 
     grad_fn = eqx.filter_jit(jax.value_and_grad(value_theta))
 
@@ -249,16 +249,16 @@ def bench_jdrkf(args, n, m, wd, radii=True):
         row["radii"] = bench_radii(args, n, m, wd, models[0], value_fn, jax, jnp, eqx, jdrkf)
 
     if not args.no_grad:
-        g = timed(grad_fn, lambda i: (filters[i].theta_x, filters[i], models[i]), "value_and_grad wrt theta_x")
+        g = timed(grad_fn, lambda i: (filters[i].radius_x, filters[i], models[i]), "value_and_grad wrt theta_x")
         row["grad"] = g
         wd.arm(f"{n}x{m}: gradient check (finite differences of jdrkf's value)")
         h = 1e-5
         checks = []
         for i in range(min(count, args.grad_checks)):
-            _, gi = grad_fn(filters[i].theta_x, filters[i], models[i])
+            _, gi = grad_fn(filters[i].radius_x, filters[i], models[i])
             tx = inst[i][4]
-            up = value_fn(eqx.tree_at(lambda f: f.theta_x, filters[i], f64(tx + h)), models[i])
-            dn = value_fn(eqx.tree_at(lambda f: f.theta_x, filters[i], f64(tx - h)), models[i])
+            up = value_fn(eqx.tree_at(lambda f: f.radius_x, filters[i], f64(tx + h)), models[i])
+            dn = value_fn(eqx.tree_at(lambda f: f.radius_x, filters[i], f64(tx - h)), models[i])
             fd = (float(up) - float(dn)) / (2 * h)
             per[i]["grad_theta_x"] = float(gi)
             per[i]["grad_theta_x_fd_jdrkf"] = fd

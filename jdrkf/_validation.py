@@ -8,6 +8,7 @@ run only on concrete arrays, so they are skipped under `jit`/`vmap` tracing.
 from __future__ import annotations
 
 import operator
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -171,3 +172,30 @@ def in_range(
     below = x < upper if upper_open else x <= upper
     finite = (x == jnp.inf) | jnp.isfinite(x) if allow_inf else jnp.isfinite(x)
     return jnp.all(above & below & finite)
+
+
+def renamed(old_name: str, old_value, new_name: str, new_value, owner: str, *, stacklevel: int = 5):
+    """Resolve a keyword argument renamed under the naming rule (deprecated alias, kept
+    for one release): `new_value` if only it is given; `old_value` with a
+    `DeprecationWarning` naming `new_name` if only the old keyword is given; a
+    `TypeError` if both or neither are given. `None` means "not given" (radii and the
+    other renamed parameters are never `None`)."""
+    if old_value is None:
+        if new_value is None:
+            raise TypeError(f"{owner}() missing required argument '{new_name}'")
+        return new_value
+    if new_value is not None:
+        raise TypeError(f"{owner}() got both '{new_name}' and its deprecated alias '{old_name}'; pass only {new_name}=")
+    warnings.warn(f"{owner}({old_name}=...) is deprecated; use {new_name}= instead", DeprecationWarning, stacklevel=stacklevel)
+    return old_value
+
+
+def renamed_attribute(old_name: str, new_name: str) -> property:
+    """A read-only property `old_name` that returns `self.<new_name>` with a
+    `DeprecationWarning` (the deprecated alias of a renamed field; not a pytree leaf)."""
+
+    def get(self):
+        warnings.warn(f"{type(self).__name__}.{old_name} is deprecated; use .{new_name} instead", DeprecationWarning, stacklevel=3)
+        return getattr(self, new_name)
+
+    return property(get, doc=f"Deprecated alias of `{new_name}` (read-only).")

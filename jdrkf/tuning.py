@@ -140,7 +140,7 @@ def _leaves(where, flt):
         raise ValueError("where must select at least one scalar float array leaf of the filter")
     for leaf in leaves:
         if not (eqx.is_array(leaf) and jnp.issubdtype(leaf.dtype, jnp.inexact) and leaf.ndim == 0):
-            raise ValueError("where must select scalar float array leaves of the filter (e.g. lambda f: f.state_set.theta)")
+            raise ValueError("where must select scalar float array leaves of the filter (e.g. lambda f: f.state_set.radius)")
     return leaves
 
 

@@ -342,8 +342,8 @@ def test_jit_vmap_grad_tau_kf_against_finite_differences(rng):
     fd_tau = _central_fd(lambda t: _mse_and_grad(TauKF(t, c), model, prior, xs, ys)[0], tau, 1e-5)
     fd_c = _central_fd(lambda x: _mse_and_grad(TauKF(tau, x), model, prior, xs, ys)[0], c, 1e-6)
     np.testing.assert_allclose(grad.tau, fd_tau, rtol=1e-5)
-    np.testing.assert_allclose(grad.c, fd_c, rtol=1e-5)
-    assert abs(grad.tau) > 1e-6 and abs(grad.c) > 1e-4  # non-trivial dependence
+    np.testing.assert_allclose(grad.radius, fd_c, rtol=1e-5)
+    assert abs(grad.tau) > 1e-6 and abs(grad.radius) > 1e-4  # non-trivial dependence
 
 
 def test_jit_vmap_grad_risk_sensitive_against_finite_differences(rng):
@@ -494,8 +494,8 @@ def test_filtered_covariances_symmetric_psd(system):
         (lambda: TauKF(1.5, 0.1), "tau"),
         (lambda: TauKF(-0.1, 0.1), "tau"),
         (lambda: TauKF(float("nan"), 0.1), "tau"),
-        (lambda: TauKF(0.5, -1.0), "c"),
-        (lambda: TauKF(0.5, np.ones(2)), "c"),
+        (lambda: TauKF(0.5, -1.0), "radius"),
+        (lambda: TauKF(0.5, np.ones(2)), "radius"),
         (lambda: RiskSensitiveKF(-1.0), "theta"),
     ],
 )

@@ -205,7 +205,7 @@ def test_bad_arguments():
         jdrkf.DRKF(joint_set=Wasserstein(0.1), outliers=EpsContamination(0.05))
     with pytest.raises(ValueError, match="state_set"):
         jdrkf.DRKF(state_set=0.1)
-    with pytest.raises(ValueError, match="rho"):
+    with pytest.raises(ValueError, match="radius"):
         jdrkf.WassersteinKF(-1.0)
     with pytest.raises(ValueError, match="theta2"):
         Moment(0.5)

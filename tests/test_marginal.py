@@ -192,7 +192,7 @@ def test_bad_inputs():
         MarginalMoment(1.2, 1.5)
     with pytest.raises(ValueError, match="gamma2"):
         MarginalMoment(0.5, 0.9)
-    with pytest.raises(ValueError, match="c must"):
+    with pytest.raises(ValueError, match="radius must"):
         MarginalKL(-0.1)
     with pytest.raises(ValueError, match="cov has shape"):
         marginal_mmse(cov, 2, (1, 2), MarginalKL(0.1))

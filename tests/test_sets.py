@@ -721,12 +721,12 @@ _S = O.random_joint(np.random.default_rng(8), 2, 1)
 @pytest.mark.parametrize(
     "call, match",
     [
-        (lambda: wasserstein_mmse(_M, _H, _R, -0.1, 0.5), "theta"),
-        (lambda: wasserstein_mmse(_M, _H, _R, 0.5, -0.1), "theta"),
-        (lambda: Wasserstein(-1.0), "theta"),
-        (lambda: KL(-1.0), r"\bc\b"),
+        (lambda: wasserstein_mmse(_M, _H, _R, -0.1, 0.5), "radius_x"),
+        (lambda: wasserstein_mmse(_M, _H, _R, 0.5, -0.1), "radius_v"),
+        (lambda: Wasserstein(-1.0), "radius"),
+        (lambda: KL(-1.0), "radius"),
         (lambda: Moment(0.5), "theta2"),
-        (lambda: wasserstein_mmse_joint(_S, 2, -0.1), "rho"),
+        (lambda: wasserstein_mmse_joint(_S, 2, -0.1), "radius"),
         (lambda: wasserstein_mmse(_M[:, :2], _H, _R, 0.5, 0.5), "prior_cov"),
         (lambda: wasserstein_mmse(_M, _H, _R[:1], 0.5, 0.5), "noise_cov"),
         (lambda: wasserstein_mmse(_M, _H[:, :2], _R, 0.5, 0.5), r"\bH\b"),
@@ -737,7 +737,7 @@ _S = O.random_joint(np.random.default_rng(8), 2, 1)
         (lambda: worst_case(0.5, KL(0.1), _M, _H, _R), "state_set"),
         (lambda: worst_case_joint(KL(0.1), _S, 2.0), r"\bn\b"),
     ],
-    ids=["theta_x<0", "theta_v<0", "Wasserstein<0", "KL<0", "Moment<1", "rho<0", "prior_cov non-square",
+    ids=["radius_x<0", "radius_v<0", "Wasserstein<0", "KL<0", "Moment<1", "radius<0", "prior_cov non-square",
          "noise_cov non-square", "H mismatch", "H transposed", "cov non-square", "n=d", "n=0", "set type",
          "n float"],
 )

@@ -164,12 +164,12 @@ def test_value_monotone_in_radii():
 
 
 @pytest.mark.slow  # DRKF(Wasserstein, Wasserstein) = WassersteinDRKF is tested, and its θx, θv gradients are in test_tuning
-@pytest.mark.parametrize("which", ["theta_x", "theta_v"])
+@pytest.mark.parametrize("which", ["radius_x", "radius_v"])
 def test_gradients_vs_finite_differences(which):
     model = _model(A3, C3, W3, V3)
 
     def value(theta):
-        kw = {"theta_x": 0.5, "theta_v": 0.3, which: theta}
+        kw = {"radius_x": 0.5, "radius_v": 0.3, which: theta}
         sol = jdrkf.SteadyStateDRKF(**kw).solve(model)
         return sol.value, sol.gain[0, 0]
 
@@ -182,9 +182,9 @@ def test_gradients_vs_finite_differences(which):
 
 
 def test_bad_input():
-    with pytest.raises(ValueError, match="theta_x"):
+    with pytest.raises(ValueError, match="radius_x"):
         jdrkf.SteadyStateDRKF(-0.1, 0.0)
-    with pytest.raises(ValueError, match="theta_v"):
+    with pytest.raises(ValueError, match="radius_v"):
         jdrkf.WassersteinDRKF(0.1, float("nan"))
     tv = jdrkf.LinearModel(F=np.stack([A3] * 4), H=C3, Q=W3, R=V3)
     with pytest.raises(ValueError, match="time-invariant"):

@@ -150,25 +150,25 @@ def _tune(model, prior, train, steps: int, notes: list[str], variant: str):
     mc = MarginalDRKF(MarginalMoment(jnp.asarray(1.0), jnp.asarray(1.0)), throw=False)
     g = grid_search(mc, objective, where=lambda f: (f.set.gamma1, f.set.gamma2), grid=np.stack([1.0 - GAMMA_GRID, 1.0 + GAMMA_GRID], 1))
     kl = MarginalDRKF(MarginalKL(jnp.asarray(0.0)), throw=False)
-    k = grid_search(kl, objective, where=lambda f: f.set.c, grid=KL_GRID)
+    k = grid_search(kl, objective, where=lambda f: f.set.radius, grid=KL_GRID)
     out["MC-MDRKF"], out["KL-MDRKF"] = g.filter.set, k.filter.set
     notes.append(
         f"[{variant}] grid choice on {train.num_runs} training runs: MC-MDRKF g = {1.0 - float(g.filter.set.gamma1):.3f} "
         f"(γ₁ = {float(g.filter.set.gamma1):.3f}, γ₂ = {float(g.filter.set.gamma2):.3f}), training MSE {g.loss:.4g}; "
-        f"KL-MDRKF c = {float(k.filter.set.c):.4f} (authors' units 2c = {2 * float(k.filter.set.c):.4f}), training MSE {k.loss:.4g}."
+        f"KL-MDRKF c = {float(k.filter.set.radius):.4f} (authors' units 2c = {2 * float(k.filter.set.radius):.4f}), training MSE {k.loss:.4g}."
     )
     notes += [grid_profile(f"[{variant}] MC-MDRKF", "g", GAMMA_GRID, g.losses), grid_profile(f"[{variant}] KL-MDRKF", "c", KL_GRID, k.losses)]
     if steps > 0:
         import optax
 
         fg = fit(g.filter, objective, where=lambda f: (f.set.gamma1, f.set.gamma2), bounds=[(0.0, 1.0), (1.0, None)], optimizer=optax.adam(0.02), steps=steps)
-        fk = fit(k.filter, objective, where=lambda f: f.set.c, bounds=(0.0, None), optimizer=optax.adam(0.01), steps=steps)
+        fk = fit(k.filter, objective, where=lambda f: f.set.radius, bounds=(0.0, None), optimizer=optax.adam(0.01), steps=steps)
         out["MC-MDRKF-grad"], out["KL-MDRKF-grad"] = fg.filter.set, fk.filter.set
         notes.append(
             f"[{variant}] gradient refinement ({steps} Adam steps from the grid optimum, same training runs): "
             f"MC-MDRKF γ₁ = {float(fg.filter.set.gamma1):.3f}, γ₂ = {float(fg.filter.set.gamma2):.3f} (training MSE {fg.loss:.4g}, "
             f"best iterate: step {fg.best_step}; grid optimum {g.loss:.4g}); "
-            f"KL-MDRKF c = {float(fk.filter.set.c):.4f} (training MSE {fk.loss:.4g}, best iterate: step {fk.best_step}; grid optimum {k.loss:.4g}). "
+            f"KL-MDRKF c = {float(fk.filter.set.radius):.4f} (training MSE {fk.loss:.4g}, best iterate: step {fk.best_step}; grid optimum {k.loss:.4g}). "
             "The best training iterate is kept, so a refinement never reports a worse point than the grid's."
         )
     return out

@@ -21,7 +21,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._root import bracketed_newton
-from .._validation import as_float_array, in_range, is_concrete
+from .._validation import as_float_array, in_range, is_concrete, renamed, renamed_attribute
 from ._base import DEFAULT_OUTPUTS, RESULTS, AbstractFilter, StepOutput
 from ._kalman import predict, update
 from ._steps import step_result
@@ -236,9 +236,9 @@ class TauKF(AbstractFilter):
 
     At step `k`, the nominal prediction `x̂_{k|k-1} = F x̂_{k-1|k-1} (+ B u + G μ_w)`,
     `P_k = F Π_{k-1} Fᵀ + G Q Gᵀ` is replaced by the least-favourable law in the
-    τ-divergence ball of radius `c` around it, which keeps the mean and inflates the
+    τ-divergence ball of radius `radius` (`c` in the paper) around it, which keeps the mean and inflates the
     covariance to `V_k`: with `P_k = U diag(p_i) Uᵀ`, `θ_k > 0` solves
-    `Σ_i φ_τ(θ_k p_i) = c` and `V_k = U diag(p_i g_τ(θ_k p_i)) Uᵀ`, where
+    `Σ_i φ_τ(θ_k p_i) = radius` and `V_k = U diag(p_i g_τ(θ_k p_i)) Uᵀ`, where
 
     | τ | `φ_τ(s)` | `g_τ(s)` | θ range |
     |---|---|---|---|
@@ -254,57 +254,61 @@ class TauKF(AbstractFilter):
     `P_{t+1} = A V_t Aᵀ − G_t(C V_t Cᵀ + R)G_tᵀ + Q` equals `F Π_k Fᵀ + Q`. The first
     step robustifies `F P_0 Fᵀ + G Q Gᵀ` (the prior's prediction).
 
-    **Tolerance convention:** `c` bounds `Σ_i φ_τ(θ p_i)`, as in Zorzi's code. For
-    `τ = 0` this is `2·KL(N(0, V) ‖ N(0, P))`, i.e. a relative-entropy budget of `c/2`
-    nats per step. For large `c` the covariance recursion can grow without bound
+    **Tolerance convention:** `radius` bounds `Σ_i φ_τ(θ p_i)`, as Zorzi's `c` does in his code.
+    For `τ = 0` this is `2·KL(N(0, V) ‖ N(0, P))`, i.e. a relative-entropy budget of
+    `radius/2` nats per step. For a large `radius` the covariance recursion can grow without bound
     (e.g. along weakly observed directions); Zorzi's guaranteed tolerance (`maxtol`)
     is not implemented here. Watch `info["theta"]` and the covariances.
 
     **Arguments:**
 
     - `tau`: divergence index in `[0, 1]` (0: KL; 1: the exponential form).
-    - `c`: tolerance `≥ 0`; `c = 0` is exactly the Kalman filter.
+    - `radius`: the tolerance `c ≥ 0` of the paper; `radius = 0` is exactly the Kalman
+      filter (`c=` is a deprecated alias).
     - `throw`, `outputs`: as in `jdrkf.KalmanFilter`.
 
-    `tau` and `c` are differentiable hyper-parameters: θ_k comes from a safeguarded
+    `tau` and `radius` are differentiable hyper-parameters: θ_k comes from a safeguarded
     Newton/bisection root solve and gets its derivative from the implicit function
     theorem; `V_k` is differentiated with the Daleckii–Krein formula (safe for repeated
     eigenvalues). Reported: `predicted = N(x̂_{k|k-1}, V_k)` (the least-favourable
     prediction), `filtered`, `loglik` = log-density of `y_k` under the least-favourable
     prediction, `info = {"theta": θ_k, "nominal_predicted_cov": P_k}`. A non-positive-
     definite innovation covariance gives `RESULTS.nonpositive_innovation`; traced `tau`
-    or `c` out of range, `RESULTS.invalid_hyperparameter` (concrete: `ValueError`).
+    or `radius` out of range, `RESULTS.invalid_hyperparameter` (concrete: `ValueError`).
 
     **Example:**
 
     ```python
     from jdrkf.filters._divergence import TauKF
-    result = TauKF(tau=0.0, c=1.5e-4)(model, prior, ys)
+    result = TauKF(tau=0.0, radius=1.5e-4)(model, prior, ys)
     result.info["theta"]                                   # (T,) multipliers θ_k
-    g = jax.grad(lambda c: loss(TauKF(0.5, c)(model, prior, ys)))(1e-3)
+    g = jax.grad(lambda r: loss(TauKF(0.5, r)(model, prior, ys)))(1e-3)
     ```
     """
 
     tau: Float[Array, ""]
-    c: Float[Array, ""]
+    radius: Float[Array, ""]
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, tau: Float[ArrayLike, ""], c: Float[ArrayLike, ""], throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
+    def __init__(self, tau: Float[ArrayLike, ""], radius: Float[ArrayLike, ""] = None, throw: bool = True,
+                 outputs: str | Sequence[str] = DEFAULT_OUTPUTS, *, c: Float[ArrayLike, ""] = None):
         self.tau = _scalar_param("tau", tau, 0.0, 1.0)
-        self.c = _scalar_param("c", c, 0.0)
+        self.radius = _scalar_param("radius", renamed("c", c, "radius", radius, "TauKF"), 0.0)
         self.throw = throw
         self.outputs = outputs
+
+    c = renamed_attribute("c", "radius")
 
     def init(self, model, prior):
         return prior
 
     def step(self, model, state, y, t, u=None, key=None, observed=None):
         nominal = predict(model, state, t, u)
-        theta, v = robustify_covariance(nominal.cov, self.tau, self.c)
+        theta, v = robustify_covariance(nominal.cov, self.tau, self.radius)
         pred = _with_cov(nominal, v)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
         info = {"theta": theta, "nominal_predicted_cov": nominal.cov}
-        valid = in_range(self.tau, 0.0, 1.0) & in_range(self.c, 0.0)
+        valid = in_range(self.tau, 0.0, 1.0) & in_range(self.radius, 0.0)
         result = RESULTS.where(valid, step_result(failed, filt), RESULTS.invalid_hyperparameter)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=result)
         return filt, out

@@ -13,7 +13,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import linalg
 from .._gaussian import Gaussian, log_density
-from .._validation import check_scalar
+from .._validation import check_scalar, renamed, renamed_attribute
 from ..sets._base import AbstractAmbiguitySet
 from ..sets._outliers import AbstractOutlierModel, EpsContamination
 from ..sets._solve import worst_case, worst_case_joint
@@ -285,31 +285,34 @@ class WassersteinKF(AbstractFilter):
     """Wasserstein distributionally robust Kalman filter (Shafieezadeh-Abadeh, Nguyen,
     Kuhn, Mohajerin Esfahani, NeurIPS 2018): at each step the covariance of
     `(x_k, y_k)` predicted by the nominal model is replaced by the worst case in a
-    `W₂` ball of radius `rho` (solved by `jdrkf.sets.wasserstein_mmse_joint`), and the
+    `W₂` ball of radius `radius` (solved by `jdrkf.sets.wasserstein_mmse_joint`), and the
     estimate is the conditional mean under it. Equal to
-    `DRKF(joint_set=Wasserstein(rho))` (Wang & Ye 2022, Theorem 10, case 6).
+    `DRKF(joint_set=Wasserstein(radius))` (Wang & Ye 2022, Theorem 10, case 6).
 
     The authors' Frank–Wolfe uses `2/(k+2)` steps, bisection and a relative gap of
     1e-4; jdrkf uses backtracking steps, Newton's method and a Newton polish, so its
-    solution is exact to round-off (and differentiable in `rho`). `square_root=True`
+    solution is exact to round-off (and differentiable in `radius`). `square_root=True`
     carries Cholesky factors: the worst-case joint covariance, ordered `(y, x)`, is
     factored after each solve, and its blocks give the gain and the filtered factor.
+    (`rho=` is a deprecated alias of `radius`.)
     """
 
-    rho: Float[Array, ""]
+    radius: Float[Array, ""]
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     square_root: bool = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, rho: Float[ArrayLike, ""], *, rtol: float | None = None, max_iter: int = 500, throw: bool = True,
-                 square_root: bool = False, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
-        self.rho = check_scalar("rho", rho)
+    def __init__(self, radius: Float[ArrayLike, ""] = None, *, rtol: float | None = None, max_iter: int = 500, throw: bool = True,
+                 square_root: bool = False, outputs: str | Sequence[str] = DEFAULT_OUTPUTS, rho: Float[ArrayLike, ""] = None):
+        self.radius = check_scalar("radius", renamed("rho", rho, "radius", radius, "WassersteinKF"))
         self.rtol, self.max_iter, self.throw, self.square_root, self.outputs = rtol, max_iter, throw, square_root, outputs
+
+    rho = renamed_attribute("rho", "radius")
 
     def init(self, model, prior: Gaussian):
         return _sqrt.initial(prior) if self.square_root else prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         joint_step = _joint_step_sqrt if self.square_root else _joint_step
-        return joint_step(self, model, state, y, t, u, observed, Wasserstein(self.rho))
+        return joint_step(self, model, state, y, t, u, observed, Wasserstein(self.radius))

@@ -102,7 +102,7 @@ class CovarianceIntersection(AbstractFilter):
 class MarginalDRKF(AbstractFilter):
     """Marginal distributionally robust Kalman filter (Chen et al. 2025, Algorithm 1):
     MC-MDRKF with `jdrkf.sets.MarginalMoment(gamma1, gamma2)`, KL-MDRKF with
-    `jdrkf.sets.MarginalKL(c)`.
+    `jdrkf.sets.MarginalKL(radius)`.
 
     Each step forms the nominal joint covariance `Σ` of `(x_k, y_k^1..y_k^p)` from the
     previous worst-case posterior covariance (eqs. 30–31, `model.joint_nominal_cov`), finds

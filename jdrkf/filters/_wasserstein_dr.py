@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 from .. import linalg
 from .._gaussian import Gaussian
 from .._models import LinearModel
-from .._validation import check_scalar, in_range
+from .._validation import check_scalar, in_range, renamed, renamed_attribute
 from ..sets._solve import worst_case
 from ..sets._steady_state import SteadyStateDR, posterior_and_gain, solve_steady_state
 from ..sets._wasserstein import Wasserstein
@@ -56,34 +56,39 @@ class WassersteinDRKF(AbstractFilter):
     oracle, Newton polish, implicit derivatives), and updates with the worst-case
     gain `K* = Σ⁻*Cᵀ(CΣ⁻*Cᵀ + Σv*)⁻¹` and nominal noise mean `v̂` (eqs. 7–9).
 
-    It equals `jdrkf.DRKF(Wasserstein(theta_x), Wasserstein(theta_v))`. `predicted` is the
+    It equals `jdrkf.DRKF(Wasserstein(radius_x), Wasserstein(radius_v))`. `predicted` is the
     worst-case prior `N(x̄⁻, Σ⁻*)`; `info` holds the pseudo-nominal prior, the worst-case
     noise covariance, the solver's iterations and gap. The paper measures `y_0`
     before any prediction; with jdrkf's time convention (`prior` is the law of `x_0`,
     `ys[0] = y_1`) pass the law of `x_{-1}`, or update on `y_0` first (as
     `jdrkf.closed_loop` does).
 
-    **Arguments:** `theta_x`, `theta_v` (radii ≥ 0, differentiable); `rtol`, `max_iter`,
-    `throw`, `outputs` as in `jdrkf.DRKF`.
+    **Arguments:** `radius_x`, `radius_v` (the radii `θx`, `θv` ≥ 0 of the balls on the
+    prior and on the noise, differentiable; `theta_x=`, `theta_v=` are deprecated
+    aliases); `rtol`, `max_iter`, `throw`, `outputs` as in `jdrkf.DRKF`.
     """
 
-    theta_x: Float[Array, ""]
-    theta_v: Float[Array, ""]
+    radius_x: Float[Array, ""]
+    radius_v: Float[Array, ""]
     rtol: float | None = eqx.field(static=True)
     max_iter: int = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, theta_x: Float[ArrayLike, ""], theta_v: Float[ArrayLike, ""], *, rtol: float | None = None,
-                 max_iter: int = 500, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
-        self.theta_x = check_scalar("theta_x", theta_x)
-        self.theta_v = check_scalar("theta_v", theta_v)
+    def __init__(self, radius_x: Float[ArrayLike, ""] = None, radius_v: Float[ArrayLike, ""] = None, *, rtol: float | None = None,
+                 max_iter: int = 500, throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
+                 theta_x: Float[ArrayLike, ""] = None, theta_v: Float[ArrayLike, ""] = None):
+        self.radius_x = check_scalar("radius_x", renamed("theta_x", theta_x, "radius_x", radius_x, "WassersteinDRKF"))
+        self.radius_v = check_scalar("radius_v", renamed("theta_v", theta_v, "radius_v", radius_v, "WassersteinDRKF"))
         self.rtol, self.max_iter, self.throw, self.outputs = rtol, max_iter, throw, outputs
+
+    theta_x = renamed_attribute("theta_x", "radius_x")
+    theta_v = renamed_attribute("theta_v", "radius_v")
 
     def init(self, model, prior: Gaussian) -> Gaussian:
         return prior
 
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
-        return decoupled_step(self, model, state, y, t, u, observed, Wasserstein(self.theta_x), Wasserstein(self.theta_v), None)
+        return decoupled_step(self, model, state, y, t, u, observed, Wasserstein(self.radius_x), Wasserstein(self.radius_v), None)
 
     def covariance_recursion(self, model: LinearModel, nominal_prior_cov: Float[ArrayLike, "n n"], num_steps: int) -> CovarianceRecursion:
         """Run the covariance part of the filter (the DR Riccati recursion (15)) for
@@ -95,7 +100,7 @@ class WassersteinDRKF(AbstractFilter):
         nominal = jnp.asarray(nominal_prior_cov, a.dtype)
         if nominal.shape != a.shape:
             raise ValueError(f"nominal_prior_cov has shape {tuple(nominal.shape)} but expected {tuple(a.shape)}")
-        sx, sv = Wasserstein(self.theta_x), Wasserstein(self.theta_v)
+        sx, sv = Wasserstein(self.radius_x), Wasserstein(self.radius_v)
 
         def body(nom, _):
             sol = worst_case(sx, sv, nom, h, v, rtol=self.rtol, max_iter=self.max_iter)
@@ -153,27 +158,32 @@ class SteadyStateDRKF(AbstractFilter):
     or radii, map with `jax.lax.map`: under `vmap` every solve runs the slowest one's
     iterations in lockstep (several times slower per solve).
 
-    **Arguments:** `theta_x`, `theta_v` (radii ≥ 0, differentiable); `max_iter`
+    **Arguments:** `radius_x`, `radius_v` (the radii `θx`, `θv` ≥ 0, differentiable;
+    `theta_x=`, `theta_v=` are deprecated aliases); `max_iter`
     (Newton iterations per continuation stage, default 20); `throw`, `outputs` as in
     `jdrkf.SteadyStateKalmanFilter`. A solve that does not converge makes `init` fail
     (with `throw`) or the run report `RESULTS.solver_not_converged`.
     """
 
-    theta_x: Float[Array, ""]
-    theta_v: Float[Array, ""]
+    radius_x: Float[Array, ""]
+    radius_v: Float[Array, ""]
     max_iter: int = eqx.field(static=True)
     shared_covariance: ClassVar[bool] = True
 
-    def __init__(self, theta_x: Float[ArrayLike, ""], theta_v: Float[ArrayLike, ""], *, max_iter: int = 20,
-                 throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS):
-        self.theta_x = check_scalar("theta_x", theta_x)
-        self.theta_v = check_scalar("theta_v", theta_v)
+    def __init__(self, radius_x: Float[ArrayLike, ""] = None, radius_v: Float[ArrayLike, ""] = None, *, max_iter: int = 20,
+                 throw: bool = True, outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
+                 theta_x: Float[ArrayLike, ""] = None, theta_v: Float[ArrayLike, ""] = None):
+        self.radius_x = check_scalar("radius_x", renamed("theta_x", theta_x, "radius_x", radius_x, "SteadyStateDRKF"))
+        self.radius_v = check_scalar("radius_v", renamed("theta_v", theta_v, "radius_v", radius_v, "SteadyStateDRKF"))
         self.max_iter, self.throw, self.outputs = int(max_iter), throw, outputs
+
+    theta_x = renamed_attribute("theta_x", "radius_x")
+    theta_v = renamed_attribute("theta_v", "radius_v")
 
     def solve(self, model: LinearModel) -> SteadyStateDR:
         """Least-favourable stationary covariances and the constant gain of (14)
         (`jdrkf.sets.steady_state_worst_case`)."""
-        return solve_steady_state(*_time_invariant(model, "SteadyStateDRKF"), self.theta_x, self.theta_v, self.max_iter)
+        return solve_steady_state(*_time_invariant(model, "SteadyStateDRKF"), self.radius_x, self.radius_v, self.max_iter)
 
     def init(self, model: LinearModel, prior: Gaussian):
         sol = self.solve(model)
@@ -185,6 +195,6 @@ class SteadyStateDRKF(AbstractFilter):
     def step(self, model, state, y, t, u=None, key: PRNGKeyArray | None = None, observed=None):
         mean, ss, chol_s, noise_cov, converged = state
         (mean, ss, chol_s), out = constant_gain_step(model, (mean, ss, chol_s), y, u, noise_cov, observed, converged)
-        valid = in_range(self.theta_x, 0.0) & in_range(self.theta_v, 0.0)
+        valid = in_range(self.radius_x, 0.0) & in_range(self.radius_v, 0.0)
         out = eqx.tree_at(lambda o: o.result, out, RESULTS.where(valid, out.result, RESULTS.invalid_hyperparameter))
         return (mean, ss, chol_s, noise_cov, converged), out

@@ -8,7 +8,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._root import bracketed_newton
-from .._validation import check_scalar, in_range
+from .._validation import check_scalar, in_range, renamed, renamed_attribute
 from ._base import AbstractAmbiguitySet
 
 _NEWTON_MAX_ITER = 200
@@ -43,7 +43,8 @@ def _phi_trace(x, a_inv, logdet_a):
 
 
 class KL(AbstractAmbiguitySet):
-    """Kullback–Leibler ball `{N(μ̂, Σ) : KL(N(μ̂, Σ) ‖ N(μ̂, Σ̂)) ≤ c}`.
+    """Kullback–Leibler ball `{N(μ̂, Σ) : KL(N(μ̂, Σ) ‖ N(μ̂, Σ̂)) ≤ c}` of radius `radius = c`
+    (`c=` is a deprecated alias of `radius`).
 
     `KL = ½[Tr(Σ̂⁻¹Σ) − d − ln det(Σ̂⁻¹Σ)]` (Wang & Ye 2022, eqs. 18, 21 and
     Theorem 2a; note that Zorzi's τ-KF code compares *twice* this quantity with its
@@ -59,19 +60,21 @@ class KL(AbstractAmbiguitySet):
     respect to everything else stay exact).
     """
 
-    c: Float[Array, ""]
+    radius: Float[Array, ""]
 
-    def __init__(self, c: Float[ArrayLike, ""]):
-        self.c = check_scalar("c", c)
+    def __init__(self, radius: Float[ArrayLike, ""] = None, *, c: Float[ArrayLike, ""] = None):
+        self.radius = check_scalar("radius", renamed("c", c, "radius", radius, "KL"))
+
+    c = renamed_attribute("c", "radius")
 
     def is_nominal(self):
-        return self.c == 0
+        return self.radius == 0
 
     def valid(self):
-        return in_range(self.c, 0.0)
+        return in_range(self.radius, 0.0)
 
     def oracle(self, direction, nominal):
-        c = lax.stop_gradient(self.c).astype(nominal.dtype)
+        c = lax.stop_gradient(self.radius).astype(nominal.dtype)
         direction, nominal = lax.stop_gradient(linalg.symmetrize(direction)), lax.stop_gradient(nominal)
         r = linalg.cholesky(nominal)
         mu, q = jnp.linalg.eigh(linalg.symmetrize(r.T @ direction @ r))
@@ -93,7 +96,7 @@ class KL(AbstractAmbiguitySet):
         return jnp.where(active, cov, nominal), jnp.where(active, t, 0.0)
 
     def residual(self, cov, multiplier, direction, nominal):
-        c = self.c.astype(nominal.dtype)
+        c = self.radius.astype(nominal.dtype)
         t = multiplier
         r = linalg.cholesky(nominal)
         w = linalg.symmetrize(r.T @ direction @ r)

@@ -49,7 +49,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
 from .._root import default_rtol, implicit_root, newton
-from .._validation import as_float_array, check_covariance, check_positive_int, in_range, is_concrete
+from .._validation import as_float_array, check_covariance, check_positive_int, in_range, is_concrete, renamed, renamed_attribute
 
 _DYKSTRA_MAX_ITER = 200
 _BISECT_ITER = 80
@@ -168,30 +168,34 @@ class MarginalMoment(AbstractMarginalSet):
 
 class MarginalKL(AbstractMarginalSet):
     """Per-sensor KL balls `KL(N(0, S_{B_i}) ‖ N(0, Σ_i)) =
-    ½[Tr(Σ_i⁻¹S_{B_i}) − log det(Σ_i⁻¹S_{B_i}) − d_i] ≤ cᵢ`, `c ≥ 0` (scalar or per sensor).
+    ½[Tr(Σ_i⁻¹S_{B_i}) − log det(Σ_i⁻¹S_{B_i}) − d_i] ≤ cᵢ` of radii `radius = c ≥ 0`
+    (scalar or per sensor; `c=` is a deprecated alias of `radius`).
     Note: the authors' code (`MDRO.m`) bounds twice this quantity (no ½) by its `c`,
-    so their `c` is `2c` here.
+    so their `c` is `2 · radius` here.
 
     Whitened, `Tr Z_B − log det Z_B − d_i ≤ 2cᵢ`: projection maps the spectrum with one
     multiplier found by bisection (`_kl_map`); barrier `log(2cᵢ − Tr Z_B + log det Z_B + d_i)`."""
 
-    c: Float[Array, "*p"]
+    radius: Float[Array, "*p"]
 
-    def __init__(self, c: Float[ArrayLike, "*p"]):
-        self.c = _per_sensor("c", c, lower=0.0, upper=np.inf)
+    def __init__(self, radius: Float[ArrayLike, "*p"] = None, *, c: Float[ArrayLike, "*p"] = None):
+        radius = renamed("c", c, "radius", radius, "MarginalKL")
+        self.radius = _per_sensor("radius", radius, lower=0.0, upper=np.inf)
+
+    c = renamed_attribute("c", "radius")
 
     def valid(self) -> Bool[Array, ""]:
-        """Traced range check (`0 ≤ c < ∞`); concrete values are checked eagerly."""
-        return in_range(self.c, 0.0)
+        """Traced range check (`0 ≤ radius < ∞`); concrete values are checked eagerly."""
+        return in_range(self.radius, 0.0)
 
     def broadcast(self, p, dtype):
-        return _replace(self, c=_broadcast("c", self.c, p, dtype))
+        return _replace(self, radius=_broadcast("radius", self.radius, p, dtype))
 
     def project(self, block, i):
-        return _spectral(block, lambda lam: _kl_map(lam, 2.0 * self.c[i]))
+        return _spectral(block, lambda lam: _kl_map(lam, 2.0 * self.radius[i]))
 
     def _slack(self, block, i):
-        return 2.0 * self.c[i] - (jnp.trace(block) - linalg.psd_logdet(block) - block.shape[-1])
+        return 2.0 * self.radius[i] - (jnp.trace(block) - linalg.psd_logdet(block) - block.shape[-1])
 
     def barrier(self, block, i):
         return jnp.log(self._slack(block, i))
@@ -204,10 +208,10 @@ class MarginalKL(AbstractMarginalSet):
         return float(len(dims))
 
     def interior(self):
-        return jnp.all(self.c > 0)
+        return jnp.all(self.radius > 0)
 
     def widen(self):
-        return _replace(self, c=self.c + _WIDEN)
+        return _replace(self, radius=self.radius + _WIDEN)
 
     def centre(self, dim, dtype):
         return jnp.eye(dim, dtype=dtype)

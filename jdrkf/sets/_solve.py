@@ -16,7 +16,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import linalg
 from .._root import chord, default_rtol, implicit_root, newton
-from .._validation import as_float_array, check_covariance, check_scalar
+from .._validation import as_float_array, check_covariance, check_scalar, renamed
 from ._base import AbstractAmbiguitySet
 from ._moment import Moment
 from ._wasserstein import Wasserstein
@@ -236,7 +236,7 @@ def _wasserstein_jacobian(h, i_min, sets, nominals):
         ds = _decoupled_objective(h, i_min).directions(k)
         parts = []
         for st, s, d, nom in zip(sets, mults, ds, nominals, strict=True):
-            rho = st.theta.astype(nom.dtype)
+            rho = st.radius.astype(nom.dtype)
             t = linalg.psd_inv(jnp.eye(d.shape[-1], dtype=d.dtype) - rho * s * d)
             sig = linalg.symmetrize(t @ nom @ t)
             p = linalg.symmetrize(t @ d)
@@ -422,24 +422,30 @@ def wasserstein_mmse(
     prior_cov: Float[ArrayLike, "n n"],
     H: Float[ArrayLike, "m n"],
     noise_cov: Float[ArrayLike, "m m"],
-    theta_x: Float[ArrayLike, ""],
-    theta_v: Float[ArrayLike, ""],
+    radius_x: Float[ArrayLike, ""] = None,
+    radius_v: Float[ArrayLike, ""] = None,
     *,
     i_min: Float[ArrayLike, ""] = 1.0,
     rtol: float | None = None,
     max_iter: int = 500,
+    theta_x: Float[ArrayLike, ""] = None,
+    theta_v: Float[ArrayLike, ""] = None,
 ) -> WorstCase:
     """Decoupled Wasserstein DR-MMSE problem (Wang & Ye 2022, eqs. 32–35; Jang et al.
-    2025, eq. 5): separate `W₂` balls of radii `theta_x` around `prior_cov` and
-    `theta_v` around `noise_cov`. See `worst_case`."""
-    sets = Wasserstein(check_scalar("theta_x", theta_x)), Wasserstein(check_scalar("theta_v", theta_v))
+    2025, eq. 5): separate `W₂` balls of radii `radius_x` around `prior_cov` and
+    `radius_v` around `noise_cov` (`theta_x=`, `theta_v=`: deprecated aliases). See `worst_case`."""
+    radius_x = renamed("theta_x", theta_x, "radius_x", radius_x, "wasserstein_mmse", stacklevel=3)
+    radius_v = renamed("theta_v", theta_v, "radius_v", radius_v, "wasserstein_mmse", stacklevel=3)
+    sets = Wasserstein(check_scalar("radius_x", radius_x)), Wasserstein(check_scalar("radius_v", radius_v))
     return worst_case(*sets, prior_cov, H, noise_cov, i_min=i_min, rtol=rtol, max_iter=max_iter)
 
 
 def wasserstein_mmse_joint(
-    cov: Float[ArrayLike, "d d"], n: int, rho: Float[ArrayLike, ""], *, rtol: float | None = None, max_iter: int = 500
+    cov: Float[ArrayLike, "d d"], n: int, radius: Float[ArrayLike, ""] = None, *, rtol: float | None = None,
+    max_iter: int = 500, rho: Float[ArrayLike, ""] = None,
 ) -> JointWorstCase:
-    """Joint Wasserstein DR-MMSE problem: one `W₂` ball of radius `rho` around the
+    """Joint Wasserstein DR-MMSE problem: one `W₂` ball of radius `radius` around the
     covariance `cov` of `(x, y)` (Shafieezadeh-Abadeh et al. 2018; Theorem 8 of
-    Wang & Ye 2022). See `worst_case_joint`."""
-    return worst_case_joint(Wasserstein(check_scalar("rho", rho)), cov, n, rtol=rtol, max_iter=max_iter)
+    Wang & Ye 2022; `rho=`: deprecated alias). See `worst_case_joint`."""
+    radius = renamed("rho", rho, "radius", radius, "wasserstein_mmse_joint", stacklevel=3)
+    return worst_case_joint(Wasserstein(check_scalar("radius", radius)), cov, n, rtol=rtol, max_iter=max_iter)

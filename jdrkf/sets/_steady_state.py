@@ -257,26 +257,26 @@ def steady_state_worst_case(
     C: Float[ArrayLike, "m n"],
     process_cov: Float[ArrayLike, "n n"],
     noise_cov: Float[ArrayLike, "m m"],
-    theta_x: Float[ArrayLike, ""],
-    theta_v: Float[ArrayLike, ""],
+    radius_x: Float[ArrayLike, ""],
+    radius_v: Float[ArrayLike, ""],
     *,
     max_iter: int = 20,
 ) -> SteadyStateDR:
     """Least-favourable stationary covariances of the steady-state Wasserstein DR
     problem (Jang, Hakobyan & Yang 2025, problems (13)/(14)) for the time-invariant
     system `x⁺ = A x + w`, `y = C x + v` with nominal `Σ̂w = process_cov` (`G Q Gᵀ`),
-    `Σ̂v = noise_cov` and radii `θx = theta_x`, `θv = theta_v` (`≥ 0`, differentiable):
+    `Σ̂v = noise_cov` and radii `θx = radius_x`, `θv = radius_v` (`≥ 0`, differentiable):
     maximize `Tr Σ` subject to `Σ = post(Σ⁻, Σv)`, `Σ̂⁻ = AΣAᵀ + Σ̂w`, `𝓑(Σ⁻, Σ̂⁻) ≤ θx`,
     `𝓑(Σv, Σ̂v) ≤ θv`, without an SDP solver (the method is described in
     `jdrkf.SteadyStateDRKF`). `max_iter`: Newton iterations per continuation stage."""
     A, C, process_cov, noise_cov = (as_float_array(k, x, (2,)) for k, x in
                                     (("A", A), ("C", C), ("process_cov", process_cov), ("noise_cov", noise_cov)))
-    theta_x, theta_v = check_scalar("theta_x", theta_x), check_scalar("theta_v", theta_v)
-    return solve_steady_state(A, C, process_cov, noise_cov, theta_x, theta_v, check_positive_int("max_iter", max_iter))
+    radius_x, radius_v = check_scalar("radius_x", radius_x), check_scalar("radius_v", radius_v)
+    return solve_steady_state(A, C, process_cov, noise_cov, radius_x, radius_v, check_positive_int("max_iter", max_iter))
 
 
-def solve_steady_state(A, C, process_cov, noise_cov, theta_x, theta_v, max_iter: int) -> SteadyStateDR:
+def solve_steady_state(A, C, process_cov, noise_cov, radius_x, radius_v, max_iter: int) -> SteadyStateDR:
     """`steady_state_worst_case` without the eager argument checks (traced arguments
     inside a filter); the radii are cast to the system's dtype."""
     dtype = A.dtype
-    return _steady_state(A, C, process_cov, noise_cov, jnp.asarray(theta_x).astype(dtype), jnp.asarray(theta_v).astype(dtype), int(max_iter))
+    return _steady_state(A, C, process_cov, noise_cov, jnp.asarray(radius_x).astype(dtype), jnp.asarray(radius_v).astype(dtype), int(max_iter))

@@ -8,18 +8,19 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import linalg
 from .._root import bracketed_newton
-from .._validation import check_scalar, in_range
+from .._validation import check_scalar, in_range, renamed, renamed_attribute
 from ._base import AbstractAmbiguitySet
 
 _NEWTON_MAX_ITER = 100
 
 
 class Wasserstein(AbstractAmbiguitySet):
-    """Type-2 Wasserstein ball `{N(μ̂, Σ) : W₂ ≤ θ}` around `N(μ̂, Σ̂)`.
+    """Type-2 Wasserstein ball `{N(μ̂, Σ) : W₂ ≤ θ}` of radius `radius = θ` around `N(μ̂, Σ̂)`.
 
     Between Gaussians with equal means `W₂` is the Bures (Gelbrich) distance
     `√Tr(Σ + Σ̂ − 2(Σ̂^½ Σ Σ̂^½)^½)` (Wang & Ye 2022, eq. 19 and Theorem 2b;
-    Shafieezadeh-Abadeh et al. 2018). `theta` is in the units of the state.
+    Shafieezadeh-Abadeh et al. 2018). `radius` is in the units of the state
+    (`theta=` is a deprecated alias of `radius`).
 
     The linear oracle is closed form up to one scalar (`docs/math/wasserstein.md`): for
     `D ⪰ 0` it is `T Σ̂ T` with `T = (I − θ s D)⁻¹`, where `s ∈ (0, 1/(θ λ_max(D)))`
@@ -29,19 +30,21 @@ class Wasserstein(AbstractAmbiguitySet):
     convex increasing residual makes the iterates decrease monotonically to the root.
     """
 
-    theta: Float[Array, ""]
+    radius: Float[Array, ""]
 
-    def __init__(self, theta: Float[ArrayLike, ""]):
-        self.theta = check_scalar("theta", theta)
+    def __init__(self, radius: Float[ArrayLike, ""] = None, *, theta: Float[ArrayLike, ""] = None):
+        self.radius = check_scalar("radius", renamed("theta", theta, "radius", radius, "Wasserstein"))
+
+    theta = renamed_attribute("theta", "radius")
 
     def is_nominal(self):
-        return self.theta == 0
+        return self.radius == 0
 
     def valid(self):
-        return in_range(self.theta, 0.0)
+        return in_range(self.radius, 0.0)
 
     def oracle(self, direction, nominal):
-        rho = lax.stop_gradient(self.theta).astype(nominal.dtype)
+        rho = lax.stop_gradient(self.radius).astype(nominal.dtype)
         direction, nominal = lax.stop_gradient(linalg.symmetrize(direction)), lax.stop_gradient(nominal)
         d, v = jnp.linalg.eigh(direction)
         d = jnp.maximum(d, 0.0)
@@ -69,7 +72,7 @@ class Wasserstein(AbstractAmbiguitySet):
         return jnp.where(exact, nominal, cov), jnp.where(active, s, 1.0)
 
     def residual(self, cov, multiplier, direction, nominal):
-        r, q, _ = oracle_residual(self.theta.astype(nominal.dtype), cov, multiplier, direction, nominal)
+        r, q, _ = oracle_residual(self.radius.astype(nominal.dtype), cov, multiplier, direction, nominal)
         return r, q
 
 
