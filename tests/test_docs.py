@@ -94,6 +94,9 @@ def test_every_notebook_and_benchmark_result_has_a_page(site):
     for name in results:
         title = (ROOT / f"benchmarks/results/{name}_cpu.md").read_text(encoding="utf-8").splitlines()[0].removeprefix("# ")
         assert html.escape(title, quote=False) in _page(site, f"benchmarks/{name}"), name
+        text = (ROOT / f"benchmarks/results/{name}_cpu.md").read_text(encoding="utf-8")
+        for figure in re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", text):  # the plots a result page shows
+            assert (site / "benchmarks" / figure).is_file(), (name, figure)
 
 
 def test_every_notebook_ships_executed():

@@ -96,6 +96,8 @@ def on_files(files: Files, config) -> Files:
     for result in sorted((ROOT / "benchmarks" / "results").glob("*_cpu.md")):
         name = result.name.removesuffix("_cpu.md")
         files.append(File.generated(config, f"benchmarks/{name}.md", abs_src_path=str(result)))
+    for figure in sorted((ROOT / "benchmarks" / "results").glob("*_cpu_*.png")):  # plots the pages show
+        files.append(File.generated(config, f"benchmarks/{figure.name}", abs_src_path=str(figure)))
     return files
 
 
