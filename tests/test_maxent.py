@@ -67,7 +67,7 @@ def test_kl_edge_cases(rng):
     p = np.asarray(kl_exact(q0, 0.02).p)
     assert p[1] == p[4] == 0 and abs(np_kl(p, q0) - 0.02) < 1e-10
     np.testing.assert_allclose(p, np.r_[oracle.kl_ball(q0[[0, 2, 3]], 0.02)][[0, 0, 1, 2, 2]] * [1, 0, 1, 1, 0], atol=2e-6)
-    with pytest.raises(ValueError, match="theta"):
+    with pytest.raises(ValueError, match="radius"):
         maxent_kl(q, -1.0)
     with pytest.raises(ValueError, match="q must"):
         maxent_kl(-q, 0.1)

@@ -169,3 +169,26 @@ def test_the_checker_finds_old_names(tmp_path):
     p.write_text("a = Wasserstein(theta=1)\nb = jdrkf.WassersteinDRKF(theta_x=1, radius_v=2)\nc = f.state_set.theta\n"
                  "d = self.theta_x\ne = KL(c=0.1)\n")
     assert len(_offences(p)) == 5
+
+
+MAXENT = {
+    "maxent_kl_solve": lambda **kw: jdrkf.sets.maxent_kl_solve(jnp.array([0.5, 0.3, 0.2]), **kw),
+    "maxent_transport_solve": lambda **kw: jdrkf.sets.maxent_transport_solve(
+        jnp.array([0.5, 0.5]), jnp.array([[0.0, 1.0, 2.0], [1.0, 0.0, 1.0]]), **kw),
+    "maxent_wasserstein_continuous": lambda **kw: jdrkf.sets.maxent_wasserstein_continuous(
+        jnp.array([0.5, 0.5]), jnp.array([[0.2, 0.2], [0.7, 0.6]]), key=jax.random.key(0), num_points=200, **kw),
+}
+
+
+@pytest.mark.parametrize("name", list(MAXENT))
+def test_maxent_radius_and_its_deprecated_alias(name):
+    """The max-entropy problems of Wang (2022) follow the rule: their budget is `radius`;
+    `theta=` still works with a DeprecationWarning and gives the same solution."""
+    new = MAXENT[name](radius=0.3)
+    with pytest.warns(DeprecationWarning, match="radius="):
+        old = MAXENT[name](theta=0.3)
+    _same(new, old)
+    with pytest.raises(TypeError, match="both"):
+        MAXENT[name](radius=0.3, theta=0.3)
+    with pytest.raises(ValueError, match="radius"):
+        MAXENT[name](radius=-1.0)

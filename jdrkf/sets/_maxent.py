@@ -42,7 +42,7 @@ from jax.nn import log_softmax, logsumexp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from .._root import bracketed_newton, implicit_root
-from .._validation import as_float_array, check_scalar, in_range, is_concrete
+from .._validation import as_float_array, check_scalar, in_range, is_concrete, renamed
 
 __all__ = [
     "MaxEntContinuous",
@@ -203,15 +203,17 @@ def _kl_pgd(q, theta, step, max_iter, tol, init):
 
 def maxent_kl_solve(
     q: Float[ArrayLike, " N"],
-    theta: Float[ArrayLike, ""],
+    radius: Float[ArrayLike, ""] = None,
     *,
+    theta: Float[ArrayLike, ""] | None = None,
     method: str = "exact",
     step: float = 0.05,
     max_iter: int | None = None,
     tol: float = 1e-8,
     init: tuple[float, float] = (2.0, 0.0),
 ) -> MaxEntResult:
-    """`max H(p)` s.t. `KL(p‖q) ≤ θ`, `Σp = 1` (Theorem 6, eq. 34), with diagnostics.
+    """`max H(p)` s.t. `KL(p‖q) ≤ θ`, `Σp = 1` (Theorem 6, eq. 34), with diagnostics;
+    `θ = radius` (`theta=`: deprecated alias).
 
     `method="exact"`: `p ∝ q^β`, `β ∈ [0, 1]` the root of `KL(p_β‖q) = θ` (bracketed
     Newton, at most `max_iter` (default 60) steps; `θ = 0 ⇒ p = q`, `θ ≥ KL(u‖q) ⇒ p`
@@ -226,15 +228,15 @@ def maxent_kl_solve(
     """
     _check_method(method)
     q = _check_prob("q", q)
-    theta = check_scalar("theta", theta).astype(q.dtype)
+    theta = check_scalar("radius", renamed("theta", theta, "radius", radius, "maxent_kl_solve", stacklevel=3)).astype(q.dtype)
     if method == "exact":
         return _theta_checked(_kl_exact(q, theta, 60 if max_iter is None else max_iter), theta)
     return _theta_checked(_kl_pgd(q, theta, step, 50_000 if max_iter is None else max_iter, tol, init), theta)
 
 
-def maxent_kl(q: Float[ArrayLike, " N"], theta: Float[ArrayLike, ""], **kwargs) -> Float[Array, " N"]:
+def maxent_kl(q: Float[ArrayLike, " N"], radius: Float[ArrayLike, ""] = None, **kwargs) -> Float[Array, " N"]:
     """`p` of `maxent_kl_solve` (same arguments): Theorem 6, `p ∝ q^β`."""
-    return maxent_kl_solve(q, theta, **kwargs).p
+    return maxent_kl_solve(q, radius, **kwargs).p
 
 
 # --------------------------------------------------------------- Wasserstein, discrete
@@ -331,8 +333,9 @@ def _transport_pgd(q, c, theta, step, max_iter, tol, init):
 def maxent_transport_solve(
     q: Float[ArrayLike, " N"],
     cost: Float[ArrayLike, "N M"],
-    theta: Float[ArrayLike, ""],
+    radius: Float[ArrayLike, ""] = None,
     *,
+    theta: Float[ArrayLike, ""] | None = None,
     method: str = "exact",
     step: float = 0.9,
     max_iter: int | None = None,
@@ -341,7 +344,8 @@ def maxent_transport_solve(
 ) -> MaxEntResult:
     """Theorem 5 (eqs. 27–29) for a generic nonnegative cost matrix `cost[i, j]`.
 
-    `max −Σ P_ij ln P_ij` s.t. `Σ_j P_ij = q_i`, `Σ c_ij P_ij ≤ θ`; `p_j = Σ_i P_ij`.
+    `max −Σ P_ij ln P_ij` s.t. `Σ_j P_ij = q_i`, `Σ c_ij P_ij ≤ θ`; `p_j = Σ_i P_ij`;
+    `θ = radius` (`theta=`: deprecated alias).
 
     `method="exact"`: `P_ij = q_i softmax_j(−v₀ c_ij)`; `v₀ = 0` (rows uniform) when
     `θ ≥ C(0)`, else the root of `C(v₀) = θ`, found by bracketed Newton on
@@ -359,7 +363,7 @@ def maxent_transport_solve(
     cost = as_float_array("cost", cost, (2,)).astype(q.dtype)
     if cost.shape[0] != q.shape[0]:
         raise ValueError(f"cost must have shape (N, M) with N = len(q) = {q.shape[0]}, got {cost.shape}")
-    theta = check_scalar("theta", theta).astype(q.dtype)
+    theta = check_scalar("radius", renamed("theta", theta, "radius", radius, "maxent_transport_solve", stacklevel=3)).astype(q.dtype)
     if is_concrete(cost) and is_concrete(theta) and is_concrete(q):
         c_np, q_np = np.asarray(cost, np.float64), np.asarray(q, np.float64)
         if np.any(c_np < 0) or not np.all(np.isfinite(c_np)):
@@ -367,7 +371,7 @@ def maxent_transport_solve(
         c_min = float(q_np @ c_np.min(axis=1))
         if method == "exact" and float(theta) < c_min * (1 - 1e-12):
             raise ValueError(
-                f"theta = {float(theta):.6g} is infeasible: it must be >= the minimal transport cost "
+                f"radius = {float(theta):.6g} is infeasible: it must be >= the minimal transport cost "
                 f"sum_i q_i min_j c_ij = {c_min:.6g}"
             )
     if method == "exact":
@@ -375,9 +379,9 @@ def maxent_transport_solve(
     return _theta_checked(_transport_pgd(q, cost, theta, step, 5_000_000 if max_iter is None else max_iter, tol, init), theta)
 
 
-def maxent_transport(q, cost, theta, **kwargs) -> Float[Array, " M"]:
+def maxent_transport(q, cost, radius=None, **kwargs) -> Float[Array, " M"]:
     """`p` of `maxent_transport_solve` (same arguments)."""
-    return maxent_transport_solve(q, cost, theta, **kwargs).p
+    return maxent_transport_solve(q, cost, radius, **kwargs).p
 
 
 def _check_support(name, x, n=None):
@@ -391,7 +395,7 @@ def maxent_wasserstein_solve(
     q: Float[ArrayLike, " N"],
     support_q: Float[ArrayLike, "N d"],
     support_p: Float[ArrayLike, "M d"],
-    theta: Float[ArrayLike, ""],
+    radius: Float[ArrayLike, ""] = None,
     **kwargs,
 ) -> MaxEntResult:
     """Theorem 5 with the paper's cost `c_ij = ‖x_i − y_j‖₂` between `support_q[i]` and
@@ -401,12 +405,12 @@ def maxent_wasserstein_solve(
     xp = _check_support("support_p", support_p).astype(q.dtype)
     if xp.shape[1] != xq.shape[1]:
         raise ValueError(f"support_p must have {xq.shape[1]} columns like support_q, got shape {xp.shape}")
-    return maxent_transport_solve(q, _pairwise_distance(xq, xp), theta, **kwargs)
+    return maxent_transport_solve(q, _pairwise_distance(xq, xp), radius, **kwargs)
 
 
-def maxent_wasserstein(q, support_q, support_p, theta, **kwargs) -> Float[Array, " M"]:
+def maxent_wasserstein(q, support_q, support_p, radius=None, **kwargs) -> Float[Array, " M"]:
     """`p_j = Σ_i P_ij` of `maxent_wasserstein_solve` (Theorem 5, eq. 28)."""
-    return maxent_wasserstein_solve(q, support_q, support_p, theta, **kwargs).p
+    return maxent_wasserstein_solve(q, support_q, support_p, radius, **kwargs).p
 
 
 # ------------------------------------------------------------- Wasserstein, continuous
@@ -619,8 +623,9 @@ def _continuous_pgd(c, logw, q, theta, eps, step, max_iter, tol, init):
 def maxent_wasserstein_continuous(
     q: Float[ArrayLike, " N"],
     support_q: Float[ArrayLike, "N d"],
-    theta: Float[ArrayLike, ""],
+    radius: Float[ArrayLike, ""] = None,
     *,
+    theta: Float[ArrayLike, ""] | None = None,
     key: PRNGKeyArray | None = None,
     num_points: int = 2000,
     bounds: tuple[float, float] | Float[ArrayLike, "d 2"] = (0.0, 1.0),
@@ -633,8 +638,8 @@ def maxent_wasserstein_continuous(
     tol: float | None = None,
     init: tuple[float, float] = (2.0, 0.0),
 ) -> MaxEntContinuous:
-    """Theorem 3: the max-entropy density within Wasserstein-1 distance `θ` of the discrete
-    `q` on `support_q`, over a box domain.
+    """Theorem 3: the max-entropy density within Wasserstein-1 distance `θ = radius` of the
+    discrete `q` on `support_q`, over a box domain (`theta=`: deprecated alias).
 
     The domain integral is discretized on `points` (with quadrature `weights`; default
     `vol/K`), or on `num_points` uniform Monte Carlo points in `bounds` (a `(lo, hi)` pair
@@ -648,7 +653,7 @@ def maxent_wasserstein_continuous(
     `method="exact"`: projected Newton with backtracking on the reduced convex dual in
     `(v₀, μ = v₀λ)` (`v₁` eliminated in closed form, so `∫p = 1` exactly; at most
     `max_iter`, default 200, steps; stop when the gradient is below `tol`, default 1e-10
-    (float64) / 1e-5 (float32)). Differentiable (`jax.grad`/`jax.jvp`) in `theta`, `q`,
+    (float64) / 1e-5 (float32)). Differentiable (`jax.grad`/`jax.jvp`) in `radius`, `q`,
     `support_q`, `points`, `weights` and `temperature` by the implicit function theorem on
     the dual's stationarity (the Newton loop runs under `stop_gradient`); when the budget is
     slack (`θ` at least the cost of the unconstrained solution) `v₀ = 0` and its derivative
@@ -672,7 +677,7 @@ def maxent_wasserstein_continuous(
     dtype = q.dtype
     xq = _check_support("support_q", support_q, q.shape[0]).astype(dtype)
     d = xq.shape[1]
-    theta = check_scalar("theta", theta).astype(dtype)
+    theta = check_scalar("radius", renamed("theta", theta, "radius", radius, "maxent_wasserstein_continuous", stacklevel=3)).astype(dtype)
     if is_concrete(temperature):
         t = float(np.asarray(temperature))
         if not np.isfinite(t) or t < 0 or (t == 0 and method == "exact"):
