@@ -133,13 +133,14 @@ def check_positive_int(name: str, value, hint: str = "") -> int:
     return int(value)
 
 
-def check_scalar(name: str, x: Float[ArrayLike, ""], lower: float = 0.0) -> Float[Array, ""]:
-    """A scalar hyper-parameter `>= lower` as a float array (checked when concrete)."""
+def check_scalar(name: str, x: Float[ArrayLike, ""], lower: float = 0.0, *, strict: bool = False, hint: str = "") -> Float[Array, ""]:
+    """A scalar hyper-parameter `>= lower` (`> lower` with `strict`) as a float array
+    (checked when concrete; `hint` ends the error message)."""
     x = as_float_array(name, x, (0,))
     if is_concrete(x):
         v = float(np.asarray(x))
-        if not np.isfinite(v) or v < lower:
-            raise ValueError(f"{name} must be a finite number >= {lower:g}, got {v:g}")
+        if not np.isfinite(v) or (v <= lower if strict else v < lower):
+            raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {lower:g}{hint}, got {v:g}")
     return x
 
 

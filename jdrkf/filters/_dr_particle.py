@@ -43,7 +43,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._gaussian import Gaussian
 from .._nonlinear import NonlinearModel
-from .._validation import as_float_array, check_positive_int, in_range, is_concrete
+from .._validation import check_positive_int, check_scalar, in_range, is_concrete
 from ..sets._particle import (
     AbstractParticleLikelihood,
     AbstractParticlePrior,
@@ -72,17 +72,6 @@ _TAG_PRIOR = 0x5052  # Method 2 sampling
 _TAG_LIKELIHOOD = 0x4C4B  # likelihood particles v^r (Methods 4, 5, 7)
 
 
-def _scalar(name, value, *, lower=None, strict=True):
-    arr = as_float_array(name, value, (0,))
-    if is_concrete(arr):
-        v = float(arr)
-        if not math.isfinite(v):
-            raise ValueError(f"{name} must be finite, got {v}")
-        if lower is not None and (v <= lower if strict else v < lower):
-            raise ValueError(f"{name} must be {'>' if strict else '>='} {lower}, got {v}")
-    return arr
-
-
 # --------------------------------------------------------------------------- outliers
 
 
@@ -101,7 +90,7 @@ class DropOutliers(eqx.Module):
     threshold: Float[Array, ""]
 
     def __init__(self, threshold: Float[ArrayLike, ""] = 1e-6):
-        self.threshold = _scalar("threshold", threshold, lower=0.0, strict=False)
+        self.threshold = check_scalar("threshold", threshold)
 
     def valid(self) -> Bool[Array, ""]:
         """`threshold >= 0`."""
@@ -127,7 +116,7 @@ class NearestOutliers(eqx.Module):
     num_particles: int = eqx.field(static=True)
 
     def __init__(self, threshold: Float[ArrayLike, ""] = 1e-6, num_particles: int = 50):
-        self.threshold = _scalar("threshold", threshold, lower=0.0, strict=False)
+        self.threshold = check_scalar("threshold", threshold)
         self.num_particles = check_positive_int("num_particles", num_particles)
 
     def valid(self) -> Bool[Array, ""]:
@@ -167,7 +156,7 @@ def _legacy_arguments(prior, likelihood, outlier, old: dict):
     # Eager checks under the old names, as the previous release made them.
     for name, strict in (("prior_radius", False), ("theta", True), ("likelihood_radius", False), ("outlier_threshold", False)):
         if name in old:
-            old[name] = _scalar(name, old[name], lower=0.0, strict=strict)
+            old[name] = check_scalar(name, old[name], strict=strict)
     for name in ("num_likelihood_particles", "num_integration_points"):
         if name in old:
             old[name] = check_positive_int(name, old[name])

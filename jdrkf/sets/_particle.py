@@ -26,7 +26,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 from .. import linalg
 from .._gaussian import log_density
 from .._nonlinear import NonlinearModel
-from .._validation import as_float_array, check_positive_int, in_range, is_concrete
+from .._validation import check_positive_int, check_scalar, in_range
 from ._maxent import (
     MaxEntContinuous,
     maxent_kl_solve,
@@ -44,17 +44,6 @@ __all__ = [
     "ParticleWassersteinSample",
     "WassersteinLikelihood",
 ]
-
-
-def _parameter(name: str, value, *, positive: bool, hint: str = "") -> Float[Array, ""]:
-    """A scalar hyper-parameter as a float array; when concrete: finite and `> 0`
-    (`positive`) or `>= 0`, else a `ValueError` naming it."""
-    arr = as_float_array(name, value, (0,))
-    if is_concrete(arr):
-        v = float(arr)
-        if not math.isfinite(v) or (v <= 0.0 if positive else v < 0.0):
-            raise ValueError(f"{name} must be a finite number {'> 0' if positive else '>= 0'}{hint}, got {v:g}")
-    return arr
 
 
 def _map_all(fn, *args, default_batch):
@@ -237,7 +226,7 @@ class ParticleKL(AbstractParticlePrior):
     radius: Float[Array, ""]
 
     def __init__(self, radius: Float[ArrayLike, ""]):
-        self.radius = _parameter("radius", radius, positive=False)
+        self.radius = check_scalar("radius", radius)
 
     def valid(self) -> Bool[Array, ""]:
         """`radius >= 0`."""
@@ -266,7 +255,7 @@ class ParticleWasserstein(AbstractParticlePrior):
     radius: Float[Array, ""]
 
     def __init__(self, radius: Float[ArrayLike, ""]):
-        self.radius = _parameter("radius", radius, positive=False)
+        self.radius = check_scalar("radius", radius)
 
     def valid(self) -> Bool[Array, ""]:
         """`radius >= 0`."""
@@ -299,7 +288,7 @@ class ParticleWassersteinSample(AbstractParticlePrior):
     num_integration_points: int = eqx.field(static=True)
 
     def __init__(self, radius: Float[ArrayLike, ""], num_integration_points: int = 1000):
-        self.radius = _parameter("radius", radius, positive=True, hint=" (Method 2 samples from a continuous density)")
+        self.radius = check_scalar("radius", radius, strict=True, hint=" (Method 2 samples from a continuous density)")
         self.num_integration_points = check_positive_int("num_integration_points", num_integration_points)
 
     def valid(self) -> Bool[Array, ""]:
@@ -384,7 +373,7 @@ class InflatedLikelihood(AbstractParticleLikelihood):
     inflation: Float[Array, ""]
 
     def __init__(self, inflation: Float[ArrayLike, ""] = 5.0):
-        self.inflation = _parameter("inflation", inflation, positive=True)
+        self.inflation = check_scalar("inflation", inflation, strict=True)
 
     def valid(self) -> Bool[Array, ""]:
         """`inflation > 0`."""
@@ -430,7 +419,7 @@ class WassersteinLikelihood(AbstractParticleLikelihood):
     num_integration_points: int = eqx.field(static=True)
 
     def __init__(self, radius: Float[ArrayLike, ""] = 0.1, num_particles: int = 50, num_integration_points: int = 1000):
-        self.radius = _parameter("radius", radius, positive=True, hint=" (Method 4 needs a density)")
+        self.radius = check_scalar("radius", radius, strict=True, hint=" (Method 4 needs a density)")
         self.num_particles = check_positive_int("num_particles", num_particles)
         self.num_integration_points = check_positive_int("num_integration_points", num_integration_points)
 
@@ -478,7 +467,7 @@ class AugmentedWassersteinLikelihood(AbstractParticleLikelihood):
     num_particles: int = eqx.field(static=True)
 
     def __init__(self, radius: Float[ArrayLike, ""] = 0.1, num_particles: int = 50):
-        self.radius = _parameter("radius", radius, positive=False)
+        self.radius = check_scalar("radius", radius)
         self.num_particles = check_positive_int("num_particles", num_particles)
 
     def valid(self) -> Bool[Array, ""]:
