@@ -238,3 +238,18 @@ def test_time_varying_filter_jit_vmap_grad(getkey):
     g = jax.jit(jax.grad(loss))(0.3)
     fd = (jax.jit(loss)(0.3 + 1e-5) - jax.jit(loss)(0.3 - 1e-5)) / 2e-5
     np.testing.assert_allclose(g, fd, rtol=1e-5)
+
+
+def test_steady_state_worst_case_function_matches_the_sdp_and_checks_its_arguments():
+    """`jdrkf.sets.steady_state_worst_case` is the solver behind `SteadyStateDRKF.solve`:
+    the Clarabel SDP of (14) gives its value; bad radii and counts raise, naming them."""
+    sol = jdrkf.sets.steady_state_worst_case(A3, C3, W3, V3, radius_x=0.5, radius_v=0.2)
+    ref = stationary_sdp(A3, C3, W3, V3, 0.5, 0.2)
+    assert bool(sol.converged)
+    np.testing.assert_allclose(float(sol.value), ref["value"], rtol=1e-6)
+    same = solve(jdrkf.SteadyStateDRKF(0.5, 0.2), _model(A3, C3, W3, V3))
+    np.testing.assert_allclose(np.asarray(sol.gain), np.asarray(same.gain), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="radius_x"):
+        jdrkf.sets.steady_state_worst_case(A3, C3, W3, V3, -0.1, 0.2)
+    with pytest.raises(ValueError, match="max_iter"):
+        jdrkf.sets.steady_state_worst_case(A3, C3, W3, V3, 0.5, 0.2, max_iter=0)
