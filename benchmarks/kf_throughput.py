@@ -47,7 +47,13 @@ means), the per-run path vs NumPy (means, covariances, log-likelihoods); toleran
 1e-8 (float64) and 1e-3 (float32). The script exits with status 1 if a check fails.
 
 `--platform gpu` runs the JAX rows on a GPU (the device is recorded; B defaults to
-1e4, 1e5, 1e6 there). Usage:
+1e4, 1e5, 1e6 there). At that scale NumPy would need minutes to simulate 10⁹ steps, so
+the data are simulated on the device (`--simulate device`, the default on a GPU: the same
+model, `jax.random` with key `--seed`, products at `Precision.HIGHEST`); the per-run
+mask and the NumPy rows use the first `--numpy-max-runs` runs. Agreement checks compare
+the first `CHECK_RUNS` runs of each output; only that slice is kept, so a row's memory is
+one output. A row that runs out of device memory is recorded as such (no steps/s) instead
+of ending the run. Usage:
 
     python benchmarks/kf_throughput.py                  # B = 1e4, T = 1000, float32 + float64
     python benchmarks/kf_throughput.py --platform gpu   # on a GPU
@@ -83,6 +89,7 @@ SYSTEM = {
 }
 DATA_SEED = 0
 MISSING_FRACTION = 0.05
+CHECK_RUNS = 10_000  # runs compared in the agreement checks
 
 
 def system_arrays(dtype="float64"):
@@ -102,6 +109,37 @@ def simulate(num_runs: int, num_steps: int, seed: int = DATA_SEED) -> tuple[np.n
         x = x @ F.T + rng.standard_normal((num_runs, n)) @ lq.T
         ys[:, t] = x @ H.T + rng.standard_normal((num_runs, m)) @ lr.T
     observed = rng.random(ys.shape) >= MISSING_FRACTION
+    return ys, observed
+
+
+def simulate_device(num_runs: int, num_steps: int, seed: int, dtype: str, mask_runs: int):
+    """As `simulate`, on the JAX device with `jax.random` (key `seed`), in `dtype`: `ys`
+    (num_runs, num_steps, m) on the device and a NumPy mask of the first `mask_runs` runs."""
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
+
+    s = system_arrays(dtype)
+    F, H, m0 = (jnp.asarray(s[k]) for k in ("F", "H", "m0"))
+    lq, lr, lp = (jnp.asarray(np.linalg.cholesky(system_arrays()[k]).astype(dtype)) for k in ("Q", "R", "P0"))
+    n, m = F.shape[0], H.shape[0]
+    hi = lax.Precision.HIGHEST
+
+    @jax.jit
+    def run(key):
+        k0, kt = jax.random.split(key)
+        x0 = m0 + jnp.matmul(jax.random.normal(k0, (num_runs, n), dtype), lp.T, precision=hi)
+
+        def step(x, k):
+            kw, kv = jax.random.split(k)
+            x = jnp.matmul(x, F.T, precision=hi) + jnp.matmul(jax.random.normal(kw, (num_runs, n), dtype), lq.T, precision=hi)
+            y = jnp.matmul(x, H.T, precision=hi) + jnp.matmul(jax.random.normal(kv, (num_runs, m), dtype), lr.T, precision=hi)
+            return x, y
+
+        return jnp.swapaxes(lax.scan(step, x0, jax.random.split(kt, num_steps))[1], 0, 1)
+
+    ys = jax.block_until_ready(run(jax.random.key(seed)))
+    observed = np.random.default_rng(seed).random((min(mask_runs, num_runs), num_steps, m)) >= MISSING_FRACTION
     return ys, observed
 
 
@@ -232,16 +270,20 @@ def run_child(args) -> dict:
 
     minimal = jax.jit(jax.vmap(minimal_kf))
 
-    def time_call(fn, *fargs):
+    def time_call(fn, *fargs, keep=lambda out: out):
+        """First call (compile + run) and `args.repeats` timed calls. Returns `keep(output)`
+        of the first call as NumPy (the full output is dropped before the timed calls)."""
         t0 = time.perf_counter()
         out = jax.block_until_ready(fn(*fargs))
         first = time.perf_counter() - t0
+        kept = jax.tree.map(np.asarray, keep(out))
+        del out
         times = []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
             jax.block_until_ready(fn(*fargs))
             times.append(time.perf_counter() - t0)
-        return out, first, times
+        return kept, first, times
 
     rows, checks = [], []
     tol = 1e-8 if dtype == "float64" else 1e-3
@@ -254,9 +296,24 @@ def run_child(args) -> dict:
             "run_times_s": times, "steps_per_s": B * args.T / med,
         })
 
+    def timed_row(impl, kind, B, fn, *fargs, keep=lambda out: out):
+        """`time_call` + `record`; a call that runs out of device memory is recorded as such."""
+        try:
+            kept, first, times = time_call(fn, *fargs, keep=keep)
+        except Exception as e:  # noqa: BLE001 (XLA's error class differs between jax versions)
+            if "RESOURCE_EXHAUSTED" not in str(e) and "out of memory" not in str(e).lower():
+                raise
+            log(f"[{dtype}] B={B} {impl}: out of device memory")
+            rows.append({"impl": impl, "kind": kind, "dtype": dtype, "B": B, "T": args.T, "out_of_memory": True,
+                         "first_call_s": None, "compile_s": None, "run_s": None, "run_min_s": None,
+                         "run_times_s": [], "steps_per_s": None})
+            return None
+        record(impl, kind, B, first, times)
+        return kept
+
     def check(B, what, pairs):
         ok = True
-        entry = {"B": B, "dtype": dtype, "vs": what}
+        entry = {"B": B, "dtype": dtype, "vs": what, "runs_compared": min(B, CHECK_RUNS)}
         for key, (a, b) in pairs.items():
             entry[f"max_abs_diff_{key}"] = d = maxabs(a, b)
             ok &= d <= tol * (1.0 if key != "loglik" else max(1.0, float(np.max(np.abs(np.asarray(b, np.float64))))))
@@ -265,28 +322,31 @@ def run_child(args) -> dict:
         log(f"[{dtype}] B={B} check {what}: " + " ".join(f"{k}={v:.3g}" for k, v in entry.items()
                                                            if k.startswith("max_abs")) + (" ok" if ok else " FAIL"))
 
-    ys_all, observed_all = simulate(max(args.batch_sizes), args.T, args.seed)
+    B_max = max(args.batch_sizes)
+    if args.simulate == "device":
+        ys_all, observed_all = simulate_device(B_max, args.T, args.seed, dtype, args.numpy_max_runs)
+    else:
+        ys_np_all, observed_all = simulate(B_max, args.T, args.seed)
+        ys_all = jnp.asarray(ys_np_all.astype(dtype))
+        del ys_np_all
+    head = lambda out: out[:CHECK_RUNS]  # noqa: E731
+    means = lambda out: out.filtered_means[:CHECK_RUNS]  # noqa: E731
     for B in args.batch_sizes:
-        ys_np = np.ascontiguousarray(ys_all[:B]).astype(dtype)
-        obs_np = np.ascontiguousarray(observed_all[:B])
-        ys, obs = jnp.asarray(ys_np), jnp.asarray(obs_np)
+        ys = ys_all if B == B_max else ys_all[:B]
         log(f"[{dtype}] B={B} T={args.T}")
-        r_tour, first, times = time_call(tour, model, prior, ys)
-        record("jdrkf README tour", "goal", B, first, times)
-        r_dyn, first, times = time_call(dyn, params, ys)
-        record("dynamax", "peer", B, first, times)
-        r_min, first, times = time_call(minimal, ys)
-        record("minimal scan+vmap KF", "peer", B, first, times)
-        check(B, "README tour vs dynamax", {"means": (r_tour.filtered_means, r_dyn.filtered_means)})
-        check(B, "README tour vs minimal KF", {"means": (r_tour.filtered_means, r_min)})
-        del r_dyn, r_min
-        _, first, times = time_call(default_outputs, model, prior, ys)
-        record("jdrkf, default outputs (dynamax's set)", "extra", B, first, times)
-        _, first, times = time_call(all_outputs, model, prior, ys)
-        record('jdrkf, outputs="all"', "extra", B, first, times)
+        m_tour = timed_row("jdrkf README tour", "goal", B, tour, model, prior, ys, keep=means)
+        m_dyn = timed_row("dynamax", "peer", B, dyn, params, ys, keep=means)
+        m_min = timed_row("minimal scan+vmap KF", "peer", B, minimal, ys, keep=head)
+        if m_tour is not None and m_dyn is not None:
+            check(B, "README tour vs dynamax", {"means": (m_tour, m_dyn)})
+        if m_tour is not None and m_min is not None:
+            check(B, "README tour vs minimal KF", {"means": (m_tour, m_min)})
+        timed_row("jdrkf, default outputs (dynamax's set)", "extra", B, default_outputs, model, prior, ys, keep=means)
+        timed_row('jdrkf, outputs="all"', "extra", B, all_outputs, model, prior, ys, keep=means)
         if B <= args.numpy_max_runs:
-            r_run, first, times = time_call(per_run, ys, obs)
-            record("jdrkf per-run (5% missing)", "goal", B, first, times)
+            ys_np, obs_np = np.asarray(ys), np.ascontiguousarray(observed_all[:B])
+            r_run = timed_row("jdrkf per-run (5% missing)", "goal", B, per_run, ys, jnp.asarray(obs_np),
+                              keep=lambda out: (out.filtered_means, out.filtered_covariances, out.marginal_loglik))
             t0 = time.perf_counter()
             r_np = numpy_kf(s["F"], s["H"], s["Q"], s["R"], s["m0"], s["P0"], ys_np, obs_np)
             first = time.perf_counter() - t0
@@ -296,10 +356,11 @@ def run_child(args) -> dict:
                 numpy_kf(s["F"], s["H"], s["Q"], s["R"], s["m0"], s["P0"], ys_np, obs_np)
                 times.append(time.perf_counter() - t0)
             record("numpy per-run (5% missing)", "peer", B, first, times, compiled=False)
-            check(B, "jdrkf per-run vs numpy", {"means": (r_run.filtered_means, r_np[0]),
-                                                "covs": (r_run.filtered_covariances, r_np[1]),
-                                                "loglik": (r_run.marginal_loglik, r_np[2])})
+            check(B, "jdrkf per-run vs numpy", {"means": (r_run[0], r_np[0]), "covs": (r_run[1], r_np[1]),
+                                                "loglik": (r_run[2], r_np[2])})
             del r_run, r_np
+        del ys
+    del ys_all
 
     dr = run_dr(args, dtype, model, prior, tol) if args.dr and dtype in args.dr_dtypes else None
     return {
@@ -425,7 +486,7 @@ def goal_table(rows):
         for B in sorted({r["B"] for r in rows if r["dtype"] == dtype}):
             get = {r["impl"]: r for r in rows if r["dtype"] == dtype and r["B"] == B}
             for name, num, den, target in GOALS:
-                if num in get and den in get:
+                if num in get and den in get and get[num]["steps_per_s"] and get[den]["steps_per_s"]:
                     ratio = get[num]["steps_per_s"] / get[den]["steps_per_s"]
                     out.append({"goal": name, "dtype": dtype, "B": B, "ratio": ratio, "target": target, "met": ratio >= target,
                                 "ratio_best_of": get[den]["run_min_s"] / get[num]["run_min_s"]})
@@ -437,7 +498,8 @@ def build_markdown(result) -> str:
     lines = [
         f"# Kalman-filter throughput ({meta['platform_tag']}): jdrkf vs dynamax vs a minimal JAX KF vs NumPy",
         "",
-        f"- Wang & Ye's (2022) system (n=2, m=1), T={cfg['T']}, data seed {cfg['seed']}, {cfg['repeats']} timed calls per cell "
+        f"- Wang & Ye's (2022) system (n=2, m=1), T={cfg['T']}, data seed {cfg['seed']} (simulated with "
+        f"{'jax.random on the device' if cfg.get('simulate') == 'device' else 'NumPy'}), {cfg['repeats']} timed calls per cell "
         "(median; best in the goal table), compile = first call − median.",
         f"- Machine: {meta['cpu_model']}, {meta['cpu_count']} cores; JAX device: {meta['device']}; "
         f"jax {meta['versions']['jax']}, dynamax {meta['versions']['dynamax']}, numpy {meta['versions']['numpy']}; "
@@ -460,6 +522,9 @@ def build_markdown(result) -> str:
               "| impl | kind | dtype | B | compile s | run s (median) | run s (best) | steps/s |",
               "|---|---|---|---:|---:|---:|---:|---:|"]
     for r in result["rows"]:
+        if r.get("out_of_memory"):
+            lines.append(f"| {r['impl']} | {r['kind']} | {r['dtype']} | {r['B']} | – | out of device memory | – | – |")
+            continue
         comp = "n/a" if r["compile_s"] is None else f"{r['compile_s']:.2f}"
         lines.append(f"| {r['impl']} | {r['kind']} | {r['dtype']} | {r['B']} | {comp} | {r['run_s']:.4g} | "
                      f"{r['run_min_s']:.4g} | {r['steps_per_s']:.3g} |")
@@ -503,7 +568,7 @@ def run_parent(args) -> int:
             path = os.path.join(tmp, f"{dtype}.json")
             cmd = [sys.executable, os.path.abspath(__file__), "--child", "--dtype", dtype, "--child-out", path,
                    "--T", str(args.T), "--repeats", str(args.repeats), "--seed", str(args.seed),
-                   "--platform", args.platform, "--numpy-max-runs", str(args.numpy_max_runs),
+                   "--platform", args.platform, "--simulate", args.simulate, "--numpy-max-runs", str(args.numpy_max_runs),
                    "--numpy-repeats", str(args.numpy_repeats), "--batch-sizes", *map(str, args.batch_sizes),
                    "--dr" if args.dr else "--no-dr", "--dr-B", str(args.dr_B), "--dr-T", str(args.dr_T),
                    "--dr-dtypes", *args.dr_dtypes]
@@ -524,7 +589,7 @@ def run_parent(args) -> int:
         "command": " ".join(["python", "benchmarks/kf_throughput.py", *sys.argv[1:]]),
         "wall_s": time.perf_counter() - t_start,
         "config": {"batch_sizes": args.batch_sizes, "T": args.T, "repeats": args.repeats, "seed": args.seed,
-                   "dtypes": args.dtypes, "platform": args.platform, "missing_fraction": MISSING_FRACTION,
+                   "dtypes": args.dtypes, "platform": args.platform, "simulate": args.simulate, "missing_fraction": MISSING_FRACTION,
                    "dr": args.dr, "dr_B": args.dr_B, "dr_T": args.dr_T, "dr_dtypes": args.dr_dtypes},
         "system": SYSTEM,
         "meta": {
@@ -566,6 +631,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=7, help="timed calls per JAX cell (median reported)")
     p.add_argument("--numpy-repeats", type=int, default=3, help="timed calls of the NumPy KF")
     p.add_argument("--numpy-max-runs", type=int, default=10_000, help="largest B for the per-run/NumPy rows")
+    p.add_argument("--simulate", choices=["numpy", "device"], default=None,
+                   help="where the data are simulated (default numpy on the CPU, device on a GPU)")
     p.add_argument("--seed", type=int, default=DATA_SEED, help="NumPy seed of the simulated data")
     p.add_argument("--dtypes", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     p.add_argument("--dr", action=argparse.BooleanOptionalAction, default=True,
@@ -584,6 +651,8 @@ def main(argv=None) -> int:
         args.batch_sizes = [100] if args.quick else ([10_000, 100_000, 1_000_000] if args.platform == "gpu" else [10_000])
     if args.T is None:
         args.T = 100 if args.quick else 1000
+    if args.simulate is None:
+        args.simulate = "device" if args.platform == "gpu" else "numpy"
     if args.dr_B is None:
         args.dr_B = 100 if args.quick else 2000
     if args.dr_T is None:

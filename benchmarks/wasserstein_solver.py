@@ -684,7 +684,7 @@ def bench_profile(args, jax, jnp, wd):
 
     from jdrkf.sets import Wasserstein, wasserstein_mmse
     from jdrkf.sets import _solve as S
-    from jdrkf import _root as R
+    from jdrkf import _root as root
 
     dtype = args.dtype
     c = lambda a: jnp.asarray(a, dtype=dtype)
@@ -716,7 +716,7 @@ def bench_profile(args, jax, jnp, wd):
     one = jnp.ones((), dtype)
 
     def pieces(H, M, R, tx, tv):
-        fg = S._decoupled_objective(H, one)
+        fg = S._decoupled_objective(H, one).fg
         sets, noms = (Wasserstein(tx), Wasserstein(tv)), (M, R)
 
         def residual(x):
@@ -727,7 +727,7 @@ def bench_profile(args, jax, jnp, wd):
 
         def newton(x):  # replica of the library's polish step
             r = residual(x)
-            dx = R.dense_solve(lambda v: jax.jvp(residual, (x,), (v,))[1], r)
+            dx = root.dense_solve(lambda v: jax.jvp(residual, (x,), (v,))[1], r)
             x_new = jax.tree.map(lambda p, q: p - q, x, dx)
             better = ravel_pytree(residual(x_new))[0]
             better = jnp.all(jnp.isfinite(better)) & (jnp.linalg.norm(better) < jnp.linalg.norm(ravel_pytree(r)[0]))
@@ -738,7 +738,7 @@ def bench_profile(args, jax, jnp, wd):
     def fw_newton(k):
         def f(M, H, R, tx, tv):
             fg, sets, noms, _, newton = pieces(H, M, R, tx, tv)
-            s, iters, mult, _ = S._frank_wolfe(fg, sets, noms, rtol, 500)
+            s, iters, mult = S._frank_wolfe(fg, sets, noms, rtol, 500)
             x = (s, mult)
             for _ in range(k):
                 x = newton(x)
@@ -771,7 +771,7 @@ def bench_profile(args, jax, jnp, wd):
         # Per-piece costs inside a fori_loop (no dispatch), minus an empty loop.
         try:
             fg, sets, noms, residual, newton = pieces(a[1], a[0], a[2], a[3], a[4])
-            s, _, mult, _ = jax.jit(lambda: S._frank_wolfe(fg, sets, noms, rtol, 500))()
+            s, _, mult = jax.jit(lambda: S._frank_wolfe(fg, sets, noms, rtol, 500))()
             x = (s, mult)
             reps = 100
 
