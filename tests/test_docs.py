@@ -86,15 +86,16 @@ def test_api_reference_documents_every_public_name(site):
 
 def test_every_notebook_and_benchmark_result_has_a_page(site):
     notebooks = sorted(p.stem for p in (ROOT / "notebooks").glob("*.ipynb"))
-    results = sorted(p.name.removesuffix("_cpu.md") for p in (ROOT / "benchmarks/results").glob("*_cpu.md"))
-    assert notebooks and results
+    results = sorted((ROOT / "benchmarks/results").glob("*_[cg]pu.md"))
+    assert notebooks and results and any(p.name.endswith("_gpu.md") for p in results)
     for name in notebooks:
         page = _page(site, f"notebooks/{name}")
         assert "jp-Cell" in page or "jupyter-wrapper" in page, name  # rendered by mkdocs-jupyter
-    for name in results:
-        title = (ROOT / f"benchmarks/results/{name}_cpu.md").read_text(encoding="utf-8").splitlines()[0].removeprefix("# ")
+    for path in results:  # NAME_cpu.md -> page benchmarks/NAME, NAME_gpu.md -> benchmarks/NAME-gpu
+        name = path.name.removesuffix("_cpu.md") if path.name.endswith("_cpu.md") else path.name.removesuffix("_gpu.md") + "-gpu"
+        text = path.read_text(encoding="utf-8")
+        title = text.splitlines()[0].removeprefix("# ")
         assert html.escape(title, quote=False) in _page(site, f"benchmarks/{name}"), name
-        text = (ROOT / f"benchmarks/results/{name}_cpu.md").read_text(encoding="utf-8")
         for figure in re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", text):  # the plots a result page shows
             assert (site / "benchmarks" / figure).is_file(), (name, figure)
 

@@ -89,13 +89,17 @@ def _expand(match: re.Match) -> str:
     return _api(arg)
 
 
+def result_page(filename: str) -> str:
+    """The site page of a stored result: `NAME_cpu.md` -> `NAME`, `NAME_gpu.md` -> `NAME-gpu`."""
+    return filename.removesuffix("_cpu.md") if filename.endswith("_cpu.md") else filename.removesuffix("_gpu.md") + "-gpu"
+
+
 @event_priority(100)  # before mkdocs-jupyter, which turns .ipynb files into pages
 def on_files(files: Files, config) -> Files:
     for nb in sorted((ROOT / "notebooks").glob("*.ipynb")):
         files.append(File(f"notebooks/{nb.name}", str(ROOT), config["site_dir"], config["use_directory_urls"]))
-    for result in sorted((ROOT / "benchmarks" / "results").glob("*_cpu.md")):
-        name = result.name.removesuffix("_cpu.md")
-        files.append(File.generated(config, f"benchmarks/{name}.md", abs_src_path=str(result)))
+    for result in sorted((ROOT / "benchmarks" / "results").glob("*_[cg]pu.md")):
+        files.append(File.generated(config, f"benchmarks/{result_page(result.name)}.md", abs_src_path=str(result)))
     for figure in sorted((ROOT / "benchmarks" / "results").glob("*_cpu_*.png")):  # plots the pages show
         files.append(File.generated(config, f"benchmarks/{figure.name}", abs_src_path=str(figure)))
     return files
