@@ -123,7 +123,8 @@ def run_scenario(name: str, args, seed: int) -> dict:
     ev = _tune.Evaluator(sc, train)
     t_fwd, t_vg = ev.timing()
     ratio = t_vg / t_fwd
-    log(f"[{name}] data + compile {time.perf_counter() - t0:.1f} s; forward {t_fwd * 1e3:.1f} ms, value-and-grad {t_vg * 1e3:.1f} ms ({ratio:.2f}×)")
+    log(f"[{name}] data + compile {time.perf_counter() - t0:.1f} s; forward {t_fwd * 1e3:.1f} ms, value-and-grad "
+        + ", ".join(f"{m} {t * 1e3:.1f} ms" for m, t in ev.vg_times.items()) + f" (using {ev.mode}: {ratio:.2f}×)")
 
     def test_error(values):
         return float(np.mean([np.mean(ev.errors(values, test)) for test in tests]))
@@ -173,6 +174,7 @@ def run_scenario(name: str, args, seed: int) -> dict:
         "name": name, "experiment": experiment, "filter": label, "paper": paper, "description": sc.description,
         "parameters": list(sc.names), "metric": sc.metric, "start": list(sc.start), "bounds": [list(b) for b in sc.bounds],
         "grid_box": [list(a) for a in sc.box], "forward_s": t_fwd, "value_and_grad_s": t_vg, "vg_over_forward": ratio,
+        "ad_mode": ev.mode, "value_and_grad_s_by_mode": ev.vg_times,
         "start_gradient": g0.tolist(), "start_fd": fd.tolist(), "start_gradient_rel_err": fd_err,
         "gradient": grad, "grids": grids, "random": rand,
         "goal": {"error_ratio": grad["test"] / ref["test"], "cost_ratio": ref["evaluations"] / g.cost, "met": bool(ok_err and ok_cost)},
@@ -229,7 +231,9 @@ def write_markdown(path, results, meta) -> None:
             f"## {r['name']} — {r['paper']}",
             "",
             (f"{r['description']}. Parameters ({', '.join(r['parameters'])}), start ({fmt(r['start'])}); metric: {r['metric']}. "
-            f"Forward {1e3 * r['forward_s']:.1f} ms, value-and-grad {1e3 * r['value_and_grad_s']:.1f} ms ({r['vg_over_forward']:.2f} forward-equivalents)."),
+            f"Forward {1e3 * r['forward_s']:.1f} ms, value-and-grad {1e3 * r['value_and_grad_s']:.1f} ms ({r['vg_over_forward']:.2f} forward-equivalents, "
+            f"{r['ad_mode']} mode, the cheaper at the start: "
+            + ", ".join(f"{m} {1e3 * t:.1f} ms" for m, t in r["value_and_grad_s_by_mode"].items()) + ")."),
             "",
             "| method | evaluations | cost (fwd-eq) | wall s | training | held-out | parameters |",
             "|---|---:|---:|---:|---:|---:|---|",

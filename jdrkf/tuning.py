@@ -15,7 +15,9 @@ fit.filter  # the tuned filter (the best iterate: fit.best_step; history: fit.pa
 ```
 
 `fit` also takes a convergence test (`tol`, `patience`), jittered `restarts` (every start's
-history in `fit.runs`), `scan=True` (the loop as one compiled `lax.scan`) and `progress`.
+history in `fit.runs`), `scan=True` (the loop as one compiled `lax.scan`), `progress`, and
+`mode="forward"`: derivatives by forward mode, often cheaper for a few parameters through
+long filter loops (`value_and_grad(f, mode=...)` is the same choice for any objective).
 
 Evaluate the tuned filter on runs simulated with a different key (separate training
 and test data).
@@ -39,7 +41,39 @@ from ._simulate import Trajectories
 from ._validation import check_count
 from .filters._base import AbstractFilter
 
-__all__ = ["FitResult", "FitRun", "GridResult", "fit", "grid_search", "rmse_objective"]
+__all__ = ["FitResult", "FitRun", "GridResult", "fit", "grid_search", "rmse_objective", "value_and_grad"]
+
+MODES = ("reverse", "forward")
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+
+
+def value_and_grad(fn: Callable[..., Float[Array, ""]], *, mode: str = "reverse") -> Callable[..., tuple[Array, PyTree]]:
+    """`fn ↦ (x, *args) ↦ (fn(x, *args), ∇ₓ fn)` for a scalar `fn` of the pytree `x`.
+
+    `mode="reverse"` is `jax.value_and_grad`: one backward pass, whatever the number of
+    parameters, but through a filter's time loop it stores every step and pays for the
+    reverse of each loop inside a step (a bounded `while_loop` is replayed in reverse in
+    full). `mode="forward"` is `jax.jacfwd`: one tangent per parameter carried alongside
+    the forward pass, nothing stored, so for a handful of parameters it can cost less
+    (measured on Li et al.'s STKF-AR1 with 3 parameters: 4–5 forward passes against 11–15).
+    Both give the same derivative."""
+    _check_mode(mode)
+    if mode == "reverse":
+        return jax.value_and_grad(fn)
+
+    def forward(x, *args):
+        def with_value(x):
+            value = fn(x, *args)
+            return value, value
+
+        grad, value = jax.jacfwd(with_value, has_aux=True)(x)
+        return value, grad
+
+    return forward
 
 
 def rmse_objective(
@@ -201,6 +235,7 @@ def fit(
     key: PRNGKeyArray | None = None,
     scan: bool = False,
     progress: bool | Callable[[int, int, float, np.ndarray], None] = False,
+    mode: str = "reverse",
 ) -> FitResult:
     """Minimize `objective(filter)` over the leaves `where(filter)` with optax.
 
@@ -229,6 +264,8 @@ def fit(
     - `progress`: `True` shows a tqdm bar (a reporter installed by the caller, e.g.
       the command line, gets the steps whatever this flag); a callable is called as
       `progress(start, step, loss, params)` after every step.
+    - `mode`: `"reverse"` (default) or `"forward"` automatic differentiation of the
+      objective (`value_and_grad`); same iterates, different cost.
     """
     steps = check_count("steps", steps)
     patience = check_count("patience", patience)
@@ -238,6 +275,7 @@ def fit(
     if not (np.isfinite(jitter) and jitter >= 0):
         raise ValueError(f"jitter must be a finite number >= 0, got {jitter!r}")
     show, callback = _check_progress(progress, scan)
+    _check_mode(mode)
     leaves = _leaves(where, flt)
     names = _leaf_names(flt, leaves)
     starts = [float(leaf) for leaf in leaves]
@@ -267,6 +305,8 @@ def fit(
     def loss_of(u):
         return objective(build(u))
 
+    vg = value_and_grad(loss_of, mode=mode)
+
     def small(new, old):
         return jnp.all(jnp.abs(new - old) <= tol * jnp.abs(old))  # False while `old` is NaN
 
@@ -274,7 +314,7 @@ def fit(
         """Loss at `u`; convergence test against the previous iterate; optimizer update
         unless converged. Returns the new carry and the record `(u, params(u), loss)`."""
         u, opt_state, prev_loss, prev_params, streak, _ = carry
-        loss, grad = jax.value_and_grad(loss_of)(u)
+        loss, grad = vg(u)
         loss, params = loss.astype(loss_dtype), params_of(u)
         streak = jnp.where(small(loss, prev_loss) & small(params, prev_params), streak + 1, 0) if tol is not None else streak
         done = streak >= patience

@@ -430,6 +430,7 @@ def test_tune_gradient_end_to_end_json_plot_and_reproduce_params(tmp_path, capsy
     f = _check_tune_json(tmp_path / "tune-fake-tune-grad.json", problem, "grad", 4, 3)
     # the budget, unless one step (a value-and-gradient and a forward) costs more
     assert f["cost"] <= max(30, 1 + f["vg_over_forward"]) + 1e-9 and f["evaluations"] >= 2
+    assert f["ad_mode"] in ("reverse", "forward")  # the cheaper at the start, timed
     assert (tmp_path / "tune-fake-tune-grad.png").stat().st_size > 5_000
     # reproduce --params hands the tuned values to the experiment's run
     assert cli.main(["reproduce", "fake-tune", "--params", str(tmp_path / "tune-fake-tune-grad.json"), "--no-progress"]) == 0

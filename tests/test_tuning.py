@@ -241,11 +241,34 @@ def test_fit_rejects_bad_arguments():
     kw = {"where": HUBER_WHERE, "bounds": HUBER_BOUNDS}
     for bad, match in [({"steps": 0}, "steps"), ({"steps": 2.5}, "steps"), ({"steps": True}, "steps"), ({"tol": 0.0}, "tol"),
                        ({"tol": -1e-3}, "tol"), ({"tol": float("nan")}, "tol"), ({"patience": 0}, "patience"),
-                       ({"restarts": -1}, "restarts"), ({"restarts": 1.5}, "restarts"), ({"jitter": -1.0}, "jitter")]:
+                       ({"restarts": -1}, "restarts"), ({"restarts": 1.5}, "restarts"), ({"jitter": -1.0}, "jitter"),
+                       ({"mode": "sideways"}, "mode")]:
         with pytest.raises(ValueError, match=match):
             tuning.fit(flt, _quadratic, **kw, **bad)
     with pytest.raises(ValueError, match="outside its bounds"):
         tuning.fit(flt, _quadratic, where=HUBER_WHERE, bounds=[(0.0, 0.01), (0.0, None)], steps=1)
+
+
+def test_forward_mode_gives_the_reverse_mode_derivative_through_a_filter(objective):
+    """`value_and_grad(mode="forward")` (jax.jacfwd) against reverse mode and central
+    differences, through the Huber KF's two parameters (a pytree argument)."""
+    f = lambda x: objective(jdrkf.HuberKF(x[0], x[1]))
+    x = (jnp.asarray(0.05), jnp.asarray(1.4))
+    (v_r, g_r), (v_f, g_f) = (jax.jit(tuning.value_and_grad(f, mode=m))(x) for m in ("reverse", "forward"))
+    np.testing.assert_allclose(v_f, v_r, rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(g_f), np.asarray(g_r), rtol=1e-9)
+    fd = _central_difference(lambda v: f((v[0], v[1])), np.asarray([0.05, 1.4]), 1)
+    np.testing.assert_allclose(float(g_f[1]), fd, rtol=1e-5)
+    with pytest.raises(ValueError, match="mode"):
+        tuning.value_and_grad(f, mode="sideways")
+
+
+def test_fit_in_forward_mode_takes_the_same_steps():
+    kw = {"where": HUBER_WHERE, "bounds": HUBER_BOUNDS, "optimizer": optax.adam(0.1), "steps": 30}
+    rev, fwd = (tuning.fit(jdrkf.HuberKF(0.05, 1.4), _quadratic, mode=m, **kw) for m in ("reverse", "forward"))
+    np.testing.assert_allclose(fwd.losses, rev.losses, rtol=1e-12)
+    np.testing.assert_allclose(fwd.params, rev.params, rtol=1e-12)
+    assert fwd.best_step == rev.best_step and fwd.loss < 1.01 < fwd.losses[0]  # the minimum is 1
 
 
 # --------------------------------------------------------------------------- gradients through several DR filters' tuned parameters

@@ -99,13 +99,15 @@ class Trace:
 
 class Evaluator:
     """The objective of `problem` on fixed `data`, jitted once: the per-run `errors(values)`
-    (on other data of the same shape too), their mean `loss(values)`, `value_and_grad(values)`,
-    and the median times of a forward and a value-and-gradient call (`timing()`)."""
+    (on other data of the same shape too), their mean `loss(values)`, `value_and_grad(values)`
+    in automatic-differentiation `mode`, and the median times of a forward and of a
+    value-and-gradient call in each mode (`timing()`, which also sets `mode` to the cheaper)."""
 
     def __init__(self, problem: TuningProblem, data: PyTree):
         self.problem, self.data = problem, data
+        self.mode = "reverse"
         self._errors = eqx.filter_jit(problem.errors)
-        self._vg = eqx.filter_jit(jax.value_and_grad(problem.loss))
+        self._vg = {m: eqx.filter_jit(tuning.value_and_grad(problem.loss, mode=m)) for m in tuning.MODES}
 
     def loss(self, values) -> float:
         return float(np.mean(self.errors(values)))
@@ -114,34 +116,39 @@ class Evaluator:
         return np.asarray(self._errors(_as_values(values), self.data if data is None else data))
 
     def value_and_grad(self, values) -> tuple[float, np.ndarray]:
-        value, grad = self._vg(_as_values(values), self.data)
+        value, grad = self._vg[self.mode](_as_values(values), self.data)
         return float(value), np.asarray([float(g) for g in grad])
 
     def timing(self, repeats: int = 3) -> tuple[float, float]:
-        """Median seconds of a forward and of a value-and-gradient call at the start."""
+        """Median seconds of a forward call and of a value-and-gradient call at the start,
+        in the cheaper mode, which becomes `mode` (both modes' times: `vg_times`)."""
         start = _as_values(self.problem.start)
-        out = []
-        for fn in (self._errors, self._vg):
+
+        def median_time(fn):
             jax.block_until_ready(fn(start, self.data))
             times = []
             for _ in range(repeats):
                 t = time.perf_counter()
                 jax.block_until_ready(fn(start, self.data))
                 times.append(time.perf_counter() - t)
-            out.append(float(np.median(times)))
-        return out[0], out[1]
+            return float(np.median(times))
+
+        forward = median_time(self._errors)
+        self.vg_times = {m: median_time(fn) for m, fn in self._vg.items()}
+        self.mode = min(self.vg_times, key=self.vg_times.get)
+        return forward, self.vg_times[self.mode]
 
 
 def tune_gradient(ev: Evaluator, *, ratio: float, steps: int, tol: float | None = 1e-4, restarts: int = 0,
                   key: PRNGKeyArray | None = None, learning_rate: float = 0.1) -> Trace:
     """Adam (`jdrkf.tuning.fit`, `patience=3`, restarts jittered by 0.5 in the unconstrained
-    space) from the problem's start. Each recorded iterate costs `ratio` forward-equivalents
+    space, derivatives in `ev.mode`) from the problem's start. Each recorded iterate costs `ratio` forward-equivalents
     (a value-and-gradient), except the last one of a start that ran out of steps (a forward)."""
     p = ev.problem
     t = time.perf_counter()
     res = tuning.fit(_Params(_as_values(p.start)), lambda q: p.loss(q.values, ev.data), where=lambda q: q.values,
                      bounds=list(p.bounds), optimizer=optax.adam(learning_rate), steps=steps, tol=tol, patience=3,
-                     restarts=restarts, jitter=0.5, key=key)
+                     restarts=restarts, jitter=0.5, key=key, mode=ev.mode)
     wall = time.perf_counter() - t
     history, cum = [], 0.0
     for run in res.runs:
@@ -265,7 +272,7 @@ def tune(name: str, *, method: str = "grad", budget: float | None = None, runs: 
             "tuned": trace.params, "start_train": ev.loss(p.start), "train": trace.loss,
             "start_heldout": _summary(start_err), "heldout": _summary(tuned_err),
             "cost": trace.cost, "evaluations": trace.evaluations, "forward_s": t_fwd, "vg_over_forward": ratio,
-            "tuning_wall_s": trace.wall_s, "wall_s": time.perf_counter() - t0, "curve": [list(c) for c in curve],
+            "ad_mode": ev.mode, "tuning_wall_s": trace.wall_s, "wall_s": time.perf_counter() - t0, "curve": [list(c) for c in curve],
             **({"steps": trace.extra["steps"], "converged": trace.extra["converged"]} if method == "grad" else {}),
             **({"k": trace.extra["k"]} if method == "grid" else {}),
         })
