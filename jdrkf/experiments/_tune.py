@@ -105,7 +105,7 @@ class Evaluator:
 
     def __init__(self, problem: TuningProblem, data: PyTree):
         self.problem, self.data = problem, data
-        self.mode = "reverse"
+        self.mode, self.vg_times = "reverse", {}
         self._errors = eqx.filter_jit(problem.errors)
         self._vg = {m: eqx.filter_jit(tuning.value_and_grad(problem.loss, mode=m)) for m in tuning.MODES}
 
