@@ -1,4 +1,4 @@
-"""Command line: `jdrkf list`, `jdrkf reproduce NAME [--runs N | --quick] [--seed S] [--json PATH] [--plots DIR]
+"""Command line: `jdrkf list`, `jdrkf reproduce NAME [--runs N] [--quick | --full] [--seed S] [--json PATH] [--plots DIR]
 [--params FILE] [--distributed [--coordinator HOST:PORT --num-processes N --process-id I]]`,
 `jdrkf tune NAME [--method grad|grid|random] [--budget B] [--runs N] [--seed S] [--quick] [--out DIR]`.
 
@@ -59,8 +59,12 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("name", help="experiment name (see `jdrkf list`)")
     r.add_argument("--runs", type=_int_at_least(2), default=None,
                    help="Monte Carlo runs, at least 2 (default: the experiment's; see `jdrkf list`)")
-    r.add_argument("--quick", action="store_true",
-                   help="a small run count and problem size (minutes, not hours): a smoke test, not a reproduction")
+    mode = r.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true",
+                      help="a small run count and problem size: a smoke test, not a reproduction")
+    mode.add_argument("--full", action="store_true",
+                      help="the paper's scale (run count, particles, horizons) where the default is cut to fit minutes; "
+                           "see `jdrkf list`")
     r.add_argument("--seed", type=_int_at_least(0, SEED_LIMIT), default=0, help="PRNG seed of the simulation (default 0)")
     r.add_argument("--json", type=pathlib.Path, default=None, help="write the report as JSON to this file")
     r.add_argument("--plots", type=pathlib.Path, default=None, help="write figures into this directory (needs matplotlib)")
@@ -243,13 +247,15 @@ def main(argv: list[str] | None = None) -> int:
     from . import experiments
 
     if args.command == "list":
-        print(f"{'name':24s} {'runs':>5s} {'time':>11s} {'quick':>5s} {'time':>6s}  description")
+        print(f"{'name':24s} {'runs':>5s} {'time':>10s} {'quick':>5s} {'time':>6s} {'full':>5s} {'time':>11s}  description")
         for name, exp in sorted(experiments.EXPERIMENTS.items()):
-            print(f"{name:24s} {exp.default_runs:5d} {exp.time_estimate():>11s} {exp.quick.get('runs', exp.default_runs):5d} "
-                  f"{exp.time_estimate(quick=True):>6s}  {exp.description}")
+            full = ("—", "") if exp.full is None else (exp.full["runs"], exp.time_estimate(full=True))
+            print(f"{name:24s} {exp.default_runs:5d} {exp.time_estimate():>10s} {exp.options(quick=True)['runs']:5d} "
+                  f"{exp.time_estimate(quick=True):>6s} {full[0]:>5} {full[1]:>11s}  {exp.description}")
         print(f"\nruns: default Monte Carlo runs; quick: the runs of --quick (which also shrinks horizons and grids); "
-              f"time: CPU time of the whole command on a {experiments.MEASURED_ON}, roughly an upper bound of its wall "
-              "time on an otherwise idle machine (est.: scaled up from a tenth of the runs; —: not measured).")
+              "full: the runs of --full, the paper's scale where the default is cut to fit minutes (—: the default is "
+              f"the paper's scale); time: CPU time of the whole command on a {experiments.MEASURED_ON}, roughly an upper "
+              "bound of its wall time on an otherwise idle machine (est.: scaled up from a tenth of the runs; —: not measured).")
         return 0
 
     from .experiments._tune import load_params
@@ -264,7 +270,9 @@ def main(argv: list[str] | None = None) -> int:
     lead = jax.process_index() == 0  # with --distributed, only process 0 reports
     with reporting(TqdmReporter() if lead and _progress_wanted(args.progress) else Quiet()) as reporter:
         t0 = time.perf_counter()
-        report = exp.reproduce(args.runs, args.seed, quick=args.quick, curves=args.plots is not None,
+        if args.full and exp.full is None:
+            return _fail(f"experiment {exp.name!r} has no separate paper-scale setting: its default is the paper's scale")
+        report = exp.reproduce(args.runs, args.seed, quick=args.quick, full=args.full, curves=args.plots is not None,
                                settings={"precision": args.precision},
                                params=params)
         report.settings["wall time"] = f"{time.perf_counter() - t0:.1f} s"

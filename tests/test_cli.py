@@ -224,6 +224,43 @@ def test_quick_mode_and_list(capsys, monkeypatch):
         assert 2 <= e.quick["runs"] <= e.default_runs
 
 
+def test_full_mode_restores_the_paper_scale(capsys, monkeypatch):
+    seen = {}
+
+    def fake_run(runs, seed, progress=False, curves=False, **options):
+        seen.update(runs=runs, **options)
+        return jdrkf.experiments.Report("fake", seed, [jdrkf.experiments.Row.from_values("KF", "rmse", 1.0, [1.0, 2.0])])
+
+    exp = jdrkf.experiments.Experiment("fake", "a fake experiment", 20, fake_run, quick={"runs": 3, "particles": 10},
+                                       full={"runs": 500, "particles": 1000})
+    monkeypatch.setitem(jdrkf.experiments.EXPERIMENTS, "fake", exp)
+    assert cli.main(["reproduce", "fake", "--no-progress"]) == 0
+    assert seen == {"runs": 20}
+    assert ", mode " not in capsys.readouterr().out
+    seen.clear()
+    assert cli.main(["reproduce", "fake", "--full", "--no-progress"]) == 0
+    assert seen == {"runs": 500, "particles": 1000}
+    assert "runs 500, mode full (runs=500, particles=1000)" in capsys.readouterr().out
+    seen.clear()
+    assert cli.main(["reproduce", "fake", "--full", "--runs", "30", "--no-progress"]) == 0
+    assert seen == {"runs": 30, "particles": 1000}
+    with pytest.raises(SystemExit):  # --quick and --full exclude each other
+        cli.main(["reproduce", "fake", "--full", "--quick"])
+    assert "not allowed with argument" in capsys.readouterr().err
+    monkeypatch.setitem(jdrkf.experiments.TIMINGS, "fake", jdrkf.experiments.Timing(60.0, 5.0, full_s=7200.0, full_estimated=True))
+    assert cli.main(["list"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fake "))
+    assert line.split()[1:9] == ["20", "60", "s", "3", "5", "s", "500", "est."] and "2.0 h" in line
+    _fake_experiment(monkeypatch, "plain")  # no paper-scale setting: --full is an error naming the experiment
+    assert cli.main(["reproduce", "plain", "--full", "--no-progress"]) == 2
+    assert "'plain' has no separate paper-scale setting" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="exclude each other"):
+        exp.options(quick=True, full=True)
+    for e in jdrkf.experiments.EXPERIMENTS.values():  # a paper scale is at least the default
+        if e.full is not None:
+            assert e.full["runs"] >= e.default_runs, e.name
+
+
 def test_console_script_entry_point():
     proc = subprocess.run([sys.executable, "-m", "jdrkf.cli", "list"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and "wang-ye-table2" in proc.stdout

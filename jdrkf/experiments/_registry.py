@@ -264,6 +264,8 @@ class Timing:
     default_s: float | None  # None: not measured
     quick_s: float
     estimated: bool = False
+    full_s: float | None = None  # `--full` (paper scale), if the experiment has one
+    full_estimated: bool = False  # `full_s` scaled up as `default_s` is when `estimated`
 
 
 # Machine the TIMINGS were measured on, one experiment at a time (float64, jax 0.10).
@@ -296,7 +298,9 @@ class Experiment:
 
     `scenario`, `metric` (with units) and `legend` (filter label → name, beyond the shared
     `GLOSSARY`) head the report. `quick` holds the `--quick` setting: `"runs"` and any
-    keyword options of `run` that shrink the problem. `timing` is the measured time
+    keyword options of `run` that shrink the problem. `full`, for experiments whose default
+    is cut to fit minutes, holds the paper's scale in the same form (`--full`); `None`: the
+    default is the paper's scale. `timing` is the measured time
     (`TIMINGS`, machine `MEASURED_ON`), `None` if not measured. `tuning(quick)`, if given,
     returns the experiment's tuning problems `{filter label: TuningProblem}` (`jdrkf tune`);
     a `run` with a `params` argument (`{filter label: tuned values}`) also evaluates those."""
@@ -309,6 +313,7 @@ class Experiment:
     metric: str = ""
     legend: Mapping[str, str] = dataclasses.field(default_factory=dict)
     quick: Mapping[str, Any] = dataclasses.field(default_factory=lambda: {"runs": 4})
+    full: Mapping[str, Any] | None = None
     tuning: Callable[[bool], Mapping[str, Any]] | None = None
 
     @property
@@ -326,36 +331,48 @@ class Experiment:
     def timing(self) -> Timing | None:
         return TIMINGS.get(self.name)
 
-    def time_estimate(self, quick: bool = False) -> str:
+    def time_estimate(self, quick: bool = False, full: bool = False) -> str:
         """The measured time as text: "45 s", "est. 2.1 h", or "—" if not measured."""
         t = self.timing
-        seconds = None if t is None else t.quick_s if quick else t.default_s
+        seconds = None if t is None else t.quick_s if quick else t.full_s if full else t.default_s
         if seconds is None:
             return "—"
-        return ("est. " if t.estimated and not quick else "") + _duration(seconds)
+        estimated = t.full_estimated if full else t.estimated and not quick
+        return ("est. " if estimated else "") + _duration(seconds)
 
-    def reproduce(self, runs: int | None = None, seed: int = 0, *, quick: bool = False, progress: bool = False,
-                  curves: bool = False, settings: Mapping[str, Any] | None = None,
+    def options(self, quick: bool = False, full: bool = False) -> dict[str, Any]:
+        """Keyword options of `run` for the mode: `quick`, `full` (paper scale) or neither
+        (the default); `"runs"` included."""
+        if quick and full:
+            raise ValueError("quick and full exclude each other")
+        if full and self.full is None:
+            raise ValueError(f"experiment {self.name!r} has no separate paper-scale setting: its default is the paper's scale")
+        return {"runs": self.default_runs, **(self.quick if quick else self.full if full else {})}
+
+    def reproduce(self, runs: int | None = None, seed: int = 0, *, quick: bool = False, full: bool = False,
+                  progress: bool = False, curves: bool = False, settings: Mapping[str, Any] | None = None,
                   params: Mapping[str, tuple[float, ...]] | None = None) -> Report:
-        """Run the experiment (`runs=None`: the default, or the quick run count) and fill
-        the report's header; `settings` adds entries to its run settings. `progress`:
+        """Run the experiment (`runs=None`: the run count of the mode — default, `quick`
+        or `full`) and fill the report's header; `settings` adds entries to its run
+        settings. `progress`:
         report the phases as bars on stderr (needs `tqdm`), unless a reporter is
         installed (`jdrkf._progress.reporting`), which then gets them. `params`: tuned
         values per filter label (from `jdrkf tune`), added as filters `<label>-params`."""
-        options = dict(self.quick) if quick else {}
+        options = self.options(quick, full)
         if params:
             self.check_takes_params()
             options["params"] = dict(params)
-        quick_runs = options.pop("runs", self.default_runs)
-        runs = (quick_runs if quick else self.default_runs) if runs is None else runs
+        mode_runs = options.pop("runs")
+        runs = mode_runs if runs is None else runs
+        mode = "quick" if quick else "full" if full else None
         with _progress.reporting(_progress.reporter(progress)) as reporter, \
-                reporter.phase(f"{self.name} ({runs} runs{', quick' if quick else ''}), total"):
+                reporter.phase(f"{self.name} ({runs} runs{', ' + mode if mode else ''}), total"):
             report = self.run(runs=runs, seed=seed, progress=progress, curves=curves, **options)
         report.title = report.title or self.description
         report.scenario = report.scenario or self.scenario
         report.metric = report.metric or self.metric
         report.legend = {**self.legend, **report.legend}
-        report.settings = {"runs": runs, **({"mode": "quick (" + ", ".join(f"{k}={v}" for k, v in self.quick.items()) + ")"} if quick else {}),
+        report.settings = {"runs": runs, **({"mode": f"{mode} (" + ", ".join(f"{k}={v}" for k, v in (self.quick if quick else self.full).items()) + ")"} if mode else {}),
                            **report.settings, **(settings or {})}
         return report
 
