@@ -268,7 +268,10 @@ def main(argv: list[str] | None = None) -> int:
     from ._progress import Quiet, TqdmReporter, reporting
 
     lead = jax.process_index() == 0  # with --distributed, only process 0 reports
-    with reporting(TqdmReporter() if lead and _progress_wanted(args.progress) else Quiet()) as reporter:
+    show = lead and _progress_wanted(args.progress)
+    if show and args.runs is None and (expected := exp.time_estimate(quick=args.quick, full=args.full)) != "—":
+        print(f"{exp.name}: expect about {expected} (CPU time measured on a {experiments.MEASURED_ON})", file=sys.stderr)
+    with reporting(TqdmReporter() if show else Quiet()) as reporter:
         t0 = time.perf_counter()
         if args.full and exp.full is None:
             return _fail(f"experiment {exp.name!r} has no separate paper-scale setting: its default is the paper's scale")

@@ -309,10 +309,18 @@ def test_progress_reports_every_phase_on_stderr(tmp_path, capsys, monkeypatch):
     assert "tuning: 100%" in err and "3/3" in err and ("step/s" in err or "s/step" in err)  # rate
     assert "plotting: 100%" in err and "1/1" in err
     assert "tuning" not in captured.out and "| KF | rmse |" in captured.out  # bars on stderr, report on stdout
+    assert "expect about" not in err  # no measured time: no estimate
     # quiet: --no-progress, and by default when stderr is not a terminal (pytest captures it)
     for flags in (["--no-progress"], []):
         assert cli.main(["reproduce", "fake", *flags]) == 0
         assert capsys.readouterr().err == ""
+    # a measured time is announced before the run (not when --runs changes the run count)
+    monkeypatch.setitem(jdrkf.experiments.TIMINGS, "fake", jdrkf.experiments.Timing(default_s=95.0, quick_s=4.0))
+    assert cli.main(["reproduce", "fake", "--progress"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"fake: expect about 95 s (CPU time measured on a {jdrkf.experiments.MEASURED_ON})")
+    assert cli.main(["reproduce", "fake", "--progress", "--runs", "3"]) == 0
+    assert "expect about" not in capsys.readouterr().err
 
 
 def test_library_is_quiet_unless_a_reporter_is_installed(capsys, monkeypatch):
