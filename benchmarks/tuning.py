@@ -24,7 +24,11 @@ tuning problems, `jdrkf.experiments.<module>.tuning_problems`, the ones `jdrkf t
 
 Methods, all from the same start (the filter's default values) and on the same training runs:
 
-(a) gradient: `tuning.fit` with Adam, a convergence test and a few jittered restarts;
+(a) gradient: `tuning.fit` with Adam and a convergence test, within a fixed budget of
+    forward-equivalents (`--grad-budget`, default a tenth of the largest grid's `k³`, i.e.
+    the goal's cost ratio): `⌊(B − 1)/r⌋` steps for budget `B` and value-and-gradient cost
+    `r`, the rule of `jdrkf tune --budget` (split evenly over `--restarts` jittered
+    restarts, none by default);
 (b) grid: `tuning.grid_search` over `k` points per axis (`k³` evaluations), for each `k`
     in `--grid-k` (the largest grid is the reference);
 (c) random search: uniform (log-uniform for scale parameters) samples in the grid's box,
@@ -141,7 +145,8 @@ def run_scenario(name: str, args, seed: int) -> dict:
     fd_err = (np.abs(g0 - fd) / np.maximum(np.abs(fd), 1e-300)).tolist()
 
     # (a) gradient
-    g = _tune.tune_gradient(ev, ratio=ratio, steps=args.steps, tol=args.tol, restarts=args.restarts, key=jax.random.fold_in(key, 2))
+    steps = max(1, int((args.grad_budget / (1 + args.restarts) - 1) // ratio))
+    g = _tune.tune_gradient(ev, ratio=ratio, steps=steps, tol=args.tol, restarts=args.restarts, key=jax.random.fold_in(key, 2))
     grad = {"train": g.loss, "test": test_error(g.params), "params": g.params, "cost": g.cost, "wall_s": g.wall_s,
             **g.extra, "curve": _tune.heldout_curve(g, test_error)}
     log(f"[{name}] gradient: train {g.loss:.5g}, held-out {grad['test']:.5g}, cost {g.cost:.1f} fwd-eq, wall {g.wall_s:.1f} s, params {g.params}")
@@ -214,7 +219,8 @@ def write_markdown(path, results, meta) -> None:
         "",
         (f"{meta['date']} · {meta['device']} · {meta['cpu']} · jax {meta['versions'].get('jax')} · "
         f"{'quick' if meta['quick'] else 'full'} run: {meta['train_runs']} training runs, {meta['test_runs']} held-out runs (another key), "
-        f"Adam ≤ {meta['steps']} steps × {1 + meta['restarts']} starts (tol {meta['tol']}), grids k ∈ {meta['grid_k']} "
+        f"Adam within {meta['grad_budget']:g} forward-equivalents (⌊(budget − 1)/r⌋ steps, r the value-and-gradient cost) × "
+        f"{1 + meta['restarts']} start(s) (tol {meta['tol']}), grids k ∈ {meta['grid_k']} "
         f"(those whose k³ forward passes take ≤ {meta['grid_budget_s']:.0f} s); total wall {meta['wall_s']:.0f} s."),
         "",
         ("Cost in forward-filter-equivalents (one evaluation of the training objective; a value-and-gradient counts "
@@ -288,18 +294,20 @@ def plot(path, r) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--quick", action="store_true", help="smoke run: small data, k ∈ {2, 3}, 6 steps, no restarts")
+    p.add_argument("--quick", action="store_true", help="smoke run: small data, k ∈ {2, 3} (gradient budget 27/10)")
     p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--restarts", type=int, default=None, help="gradient restarts (default: 0 quick, 1 full)")
+    p.add_argument("--restarts", type=int, default=0, help="gradient restarts sharing the budget (default 0)")
+    p.add_argument("--grad-budget", type=float, default=None,
+                   help="gradient budget in forward-equivalents (default: the largest grid's k³ / 10)")
     p.add_argument("--grid-budget", type=float, default=None, help="seconds of forward passes allowed per grid (default 20 quick, 150 full)")
     p.add_argument("--out", default=os.path.join(HERE, "results", "tuning_cpu"), help="output prefix (.md, .json, _<scenario>.png)")
     args = p.parse_args(argv)
     args.train_runs, args.test_chunks = (4, 1) if args.quick else (16, 2)
     args.test_runs = args.train_runs * args.test_chunks
-    args.steps, args.tol = (6, 1e-4) if args.quick else (25, 1e-4)
-    args.restarts = (0 if args.quick else 1) if args.restarts is None else args.restarts
+    args.tol = 1e-4
     args.grid_k = (2, 3) if args.quick else (3, 6, 10)
+    args.grad_budget = args.grad_budget or max(args.grid_k) ** 3 / GOAL_COST  # 3 parameters per scenario
     args.grid_budget = (20.0 if args.quick else 150.0) if args.grid_budget is None else args.grid_budget
     set_platform("cpu")
     import jax
@@ -316,7 +324,7 @@ def main(argv=None) -> int:
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "device": device_summary(jax),
         "cpu": cpu_model(), "cores": os.cpu_count(), "machine": platform.machine(), "loadavg": loadavg(), "versions": versions(),
         "jdrkf_source": package_source_hash(), "git": git_info(), "quick": args.quick, "train_runs": args.train_runs,
-        "test_runs": args.test_runs, "steps": args.steps, "restarts": args.restarts, "tol": args.tol, "grid_k": list(args.grid_k), "grid_budget_s": args.grid_budget,
+        "test_runs": args.test_runs, "grad_budget": args.grad_budget, "restarts": args.restarts, "tol": args.tol, "grid_k": list(args.grid_k), "grid_budget_s": args.grid_budget,
         "seed": args.seed, "dtype": "float64", "wall_s": time.perf_counter() - t0, "out": portable_path(args.out),
     }
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
