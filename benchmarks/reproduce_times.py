@@ -4,8 +4,8 @@ Each experiment runs as its own process, `python -m jdrkf.cli reproduce NAME --n
 (import, compilation, tuning and Monte Carlo included), one after the other. The table
 records the wall time and the CPU time (user + system of the child) of each; on a quiet
 2-core machine the wall time is what a user waits. `--store-reports` also writes each
-printed report to `docs/reproductions/NAME.md`, where the paper pages of the
-documentation include them.
+printed report to `docs/reproductions/NAME.md` (and `NAME.json`), where the paper pages and
+the differences table of the documentation include them.
 
     python benchmarks/reproduce_times.py                       # every experiment, defaults
     python benchmarks/reproduce_times.py chen-fusion jang-lqr  # some of them
@@ -33,9 +33,11 @@ ROOT = pathlib.Path(_provenance.ROOT)
 GOAL_S = 300.0
 
 
-def run_one(name: str, quick: bool, timeout: float) -> dict:
-    """Run one reproduction in a child process; its wall and CPU seconds and report."""
-    cmd = [sys.executable, "-m", "jdrkf.cli", "reproduce", name, "--no-progress", *(["--quick"] if quick else [])]
+def run_one(name: str, quick: bool, timeout: float, json_path: pathlib.Path | None = None) -> dict:
+    """Run one reproduction in a child process; its wall and CPU seconds and report
+    (`json_path`: the child also writes its JSON report there)."""
+    cmd = [sys.executable, "-m", "jdrkf.cli", "reproduce", name, "--no-progress", *(["--quick"] if quick else []),
+           *(["--json", str(json_path)] if json_path is not None else [])]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     try:
@@ -87,7 +89,7 @@ def main(argv=None) -> int:
     p.add_argument("names", nargs="*", help="experiments to time (default: all registered)")
     p.add_argument("--quick", action="store_true", help="time the --quick runs instead of the defaults")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds before a run is stopped (default 1800)")
-    p.add_argument("--store-reports", action="store_true", help="write each report to docs/reproductions/NAME.md")
+    p.add_argument("--store-reports", action="store_true", help="write each report to docs/reproductions/NAME.md and .json")
     p.add_argument("--out", type=pathlib.Path, default=None,
                    help="output path without suffix (default benchmarks/results/reproduce_times_cpu)")
     args = p.parse_args(argv)
@@ -104,13 +106,15 @@ def main(argv=None) -> int:
     rows = []
     for name in names:
         exp = experiments.get(name)
-        row = run_one(name, args.quick, args.timeout)
+        store = ROOT / "docs" / "reproductions" / name if args.store_reports else None
+        row = run_one(name, args.quick, args.timeout, None if store is None else store.with_suffix(".json"))
         row["runs"] = exp.options(quick=args.quick)["runs"]
         print(f"{name}: {row['status']}, wall {row['wall_s']:.1f} s, CPU {row['cpu_s']:.1f} s", flush=True)
         if row["status"] != 0:
             print(row["stderr_tail"], file=sys.stderr)
         elif args.store_reports:
-            (ROOT / "docs" / "reproductions" / f"{name}.md").write_text(row["report"])
+            report = row["report"]
+            store.with_suffix(".md").write_text(report[:report.rindex("\nreport: ")].rstrip() + "\n")  # less the CLI's "report: PATH" line
         rows.append(row)
     meta["loadavg_end"] = _provenance.loadavg()
     result = {"meta": meta, "goal_s": GOAL_S, "rows": [{k: v for k, v in r.items() if k != "report"} for r in rows]}

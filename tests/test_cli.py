@@ -94,6 +94,17 @@ def test_ranking_is_paired_and_respects_ties():
     assert rev[0]["a"] == "B" and rev[0]["verdict"] == "reversed"
 
 
+def test_row_places_the_paper_number_among_our_runs():
+    row = jdrkf.experiments.Row
+    v = np.arange(1.0, 11.0)  # 1, ..., 10: mean 5.5, interval about [3.3, 7.7]
+    inside, above, single = row.from_values("A", "rmse", 6.0, v), row.from_values("A", "rmse", 9.5, v), row.from_values("A", "rmse", 9.5, [2.0])
+    assert not inside.outside_ci and above.outside_ci and not single.outside_ci  # one run: no interval to leave
+    assert inside.paper_percentile == 60.0 and above.paper_percentile == 90.0 and single.paper_percentile is None
+    assert row("A", "rmse", 9.5, 5.5, (3.3, 7.7), 10).paper_percentile is None  # no per-run values kept
+    (j,) = jdrkf.experiments.Report("x", 0, [above]).to_json()["rows"]
+    assert j["outside_ci"] is True and j["paper_percentile"] == 90.0 and j["sd"] == pytest.approx(np.sqrt(110 / 12))
+
+
 def test_report_header_legend_single_run_and_positive_ci():
     row = jdrkf.experiments.Row
     rng = np.random.default_rng(1)

@@ -141,6 +141,30 @@ def test_readme_sections_and_reports_reach_their_pages(site):
         assert any(f'id="{name}' in page for page in pages), f"the report {report.name} is on no paper page"
 
 
+def test_differences_table_lists_every_paper_number_outside_our_interval(site):
+    import tomllib
+
+    text = html.unescape(re.sub(r"<[^>]+>", " ", _page(site, "papers/differences")))
+    spec = tomllib.loads((ROOT / "docs/reproductions/differences.toml").read_text(encoding="utf-8"))
+    reports = sorted((ROOT / "docs/reproductions").glob("*.json"))
+    assert reports
+    listed = 0
+    for path in reports:
+        report = json.loads(path.read_text(encoding="utf-8"))
+        assert report["experiment"] in spec["paper_runs"], path.name
+        for row in report["rows"]:
+            lo, hi = row["ci95"]
+            outside = row["paper"] is not None and row["runs"] > 1 and not lo <= row["paper"] <= hi
+            assert row["outside_ci"] == outside, (path.name, row)  # the flag agrees with the interval
+            if row["paper"] is None:
+                continue
+            cells = f" {report['experiment']} {row['filter']} {row['metric']} {row['paper']:.4g} {row['mean']:.4g} "
+            assert (re.sub(r"\s+", " ", cells) in re.sub(r"\s+", " ", text)) == outside, (path.name, row["filter"], row["metric"])
+            listed += outside
+    assert text.count("not explained") + text.count("% of our per-run values") + text.count("standard errors") \
+        + sum(c["cause"].split()[0] in text for c in spec.get("cause", [])) >= listed
+
+
 # ---------------------------------------------------------------------------------------------
 # Headless browser (slow tier)
 

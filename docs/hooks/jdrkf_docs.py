@@ -7,6 +7,11 @@
   `## Heading` (`<!-- readme: (top) -->`: the text before the first section), and a line
   `<!-- report: name -->` by the stored report `docs/reproductions/<name>.md` of
   `jdrkf reproduce name`. A missing section or report fails the build.
+- `<!-- differences: all -->` expands to the table of every paper number outside our 95% interval
+  in the stored JSON reports (`docs/reproductions/<name>.json`, written by
+  `benchmarks/reproduce_times.py --store-reports`), with the cause from
+  `docs/reproductions/differences.toml` or, where the paper's number is one episode (or a small
+  average) and lies inside the spread of our runs, that computed explanation.
 - `<!-- api: package -->` expands to one mkdocstrings block per public name that the package's
   `__init__.py` re-exports (for `jdrkf`: its lazy export table, less the filters, which have their
   own page), so the API pages follow the exports.
@@ -15,15 +20,18 @@
 from __future__ import annotations
 
 import ast
+import json
+import math
 import pathlib
 import re
+import tomllib
 
 from mkdocs.exceptions import PluginError
 from mkdocs.plugins import event_priority
 from mkdocs.structure.files import File, Files
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-_DIRECTIVE = re.compile(r"^<!-- (readme|report|api): (.+?) -->[ \t]*$", re.M)
+_DIRECTIVE = re.compile(r"^<!-- (readme|report|api|differences): (.+?) -->[ \t]*$", re.M)
 
 
 def _readme_section(heading: str) -> str:
@@ -52,6 +60,57 @@ def _report(name: str) -> str:
             out.append("")
         out.append(line)
     return "\n".join(out)
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def _spread_cause(row: dict, paper_runs: int) -> str | None:
+    """The computed explanation of a paper number outside our interval, if the spread of our
+    runs covers it: a single episode inside the central 95% of our per-run values, or an
+    average of `paper_runs` episodes within 1.96 sd/√paper_runs of our mean."""
+    if paper_runs == 1 and row.get("paper_percentile") is not None:
+        pct = row["paper_percentile"]
+        if 2.5 <= pct <= 97.5:
+            return f"one random episode in the paper; {pct:.0f}% of our per-run values lie at or below its number"
+    elif paper_runs > 1 and row.get("sd") is not None:
+        z = abs(row["paper"] - row["mean"]) / (row["sd"] / math.sqrt(paper_runs))
+        if z <= 1.96:
+            return (f"the paper averages {paper_runs} episodes; its number is {z:.1f} standard errors of a "
+                    f"{paper_runs}-episode mean from ours")
+    return None
+
+
+def _differences(_: str) -> str:
+    """Markdown table: every row of the stored JSON reports whose paper number lies outside
+    our 95% interval, with its cause (curated, or computed by `_spread_cause`)."""
+    folder = ROOT / "docs" / "reproductions"
+    spec = tomllib.loads((folder / "differences.toml").read_text(encoding="utf-8"))
+    runs_of, causes = spec["paper_runs"], spec.get("cause", [])
+    reports = sorted(folder.glob("*.json"))
+    if not reports:
+        raise PluginError("differences: no stored JSON report in docs/reproductions/ (benchmarks/reproduce_times.py --store-reports)")
+    lines = ["| experiment | filter | metric | paper | ours (95% CI) | cause | evidence |", "|---|---|---|---:|---|---|---|"]
+    for path in reports:
+        report = json.loads(path.read_text(encoding="utf-8"))
+        name = report["experiment"]
+        if name not in runs_of:
+            raise PluginError(f"differences.toml: no paper_runs entry for {name!r}")
+        for row in report["rows"]:
+            if not row.get("outside_ci"):
+                continue
+            curated = [c for c in causes if c["experiment"] == name and c.get("filter", row["filter"]) == row["filter"]
+                       and c.get("metric", "") in row["metric"]]
+            if curated:
+                cause, evidence = curated[0]["cause"], curated[0]["evidence"]
+            else:
+                computed = _spread_cause(row, runs_of[name])
+                cause, evidence = (computed, "this table (the stored run)") if computed else ("**not explained**", "—")
+            lo, hi = row["ci95"]
+            lines.append(f"| {name} | {row['filter']} | {row['metric']} | {_fmt(row['paper'])} | {_fmt(row['mean'])} "
+                         f"[{_fmt(lo)}, {_fmt(hi)}] | {cause} | {evidence} |")
+    return "\n".join(lines)
 
 
 def _api(module: str) -> str:
@@ -86,6 +145,8 @@ def _expand(match: re.Match) -> str:
         return _readme_section(arg)
     if kind == "report":
         return _report(arg)
+    if kind == "differences":
+        return _differences(arg)
     return _api(arg)
 
 

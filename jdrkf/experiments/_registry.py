@@ -78,6 +78,24 @@ class Row:
         mean, ci = metrics.mean_ci(v, scale="log" if v.size > 1 and np.all(v > 0) else "linear")
         return cls(filter, metric, paper, mean, ci, int(v.size), v)
 
+    @property
+    def sd(self) -> float | None:
+        """Standard deviation of the per-run values (`None` without at least two)."""
+        return None if self.values is None or self.values.size < 2 else float(np.std(self.values, ddof=1))
+
+    @property
+    def outside_ci(self) -> bool:
+        """Whether the paper's number lies outside our 95% interval (False without one)."""
+        return self.paper is not None and self.runs > 1 and not (self.ci95[0] <= self.paper <= self.ci95[1])
+
+    @property
+    def paper_percentile(self) -> float | None:
+        """Percentage of our per-run values at or below the paper's number: where a
+        single-episode paper number falls among our runs (`None` without per-run values)."""
+        if self.paper is None or self.values is None or self.values.size < 2:
+            return None
+        return 100.0 * float(np.mean(self.values <= self.paper))
+
 
 @dataclasses.dataclass
 class Sweep:
@@ -126,7 +144,8 @@ class Report:
             "metric": self.metric,
             "settings": self.settings,
             "rows": [
-                {"filter": r.filter, "metric": r.metric, "paper": r.paper, "mean": r.mean, "ci95": list(r.ci95), "runs": r.runs}
+                {"filter": r.filter, "metric": r.metric, "paper": r.paper, "mean": r.mean, "ci95": list(r.ci95), "runs": r.runs,
+                 "sd": r.sd, "outside_ci": r.outside_ci, "paper_percentile": r.paper_percentile}
                 for r in self.rows
             ],
             "notes": self.notes,
