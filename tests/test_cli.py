@@ -36,7 +36,7 @@ def test_reproduce_table_json_and_plot(tmp_path, capsys):
     rows = {r["filter"]: r for r in data["rows"]}
     assert set(rows) == {"TMKF", "KF", "HKF", "tau-KF", "WKF", "MKF", "MKF-tuned"}
     for r in rows.values():
-        assert set(r) == {"filter", "metric", "paper", "mean", "ci95", "runs"}
+        assert set(r) == {"filter", "metric", "paper", "mean", "ci95", "runs", "sd", "outside_ci", "paper_percentile"}
         assert r["runs"] == 4 and r["metric"] == "rmse"
         assert r["ci95"][0] < r["mean"] < r["ci95"][1]
     # Clairvoyant TMKF (true F, outlier-free data) is far better than the nominal KF.

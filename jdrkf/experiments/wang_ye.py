@@ -23,7 +23,7 @@ from .._montecarlo import Clairvoyant, montecarlo
 from .._noise import OutlierNoise, UniformPerturbation
 from .._simulate import simulate
 from ..filters import DRKF, HuberKF, KalmanFilter, TauKF, WassersteinKF
-from ..sets import EpsContamination, Moment, Wasserstein
+from ..sets import EpsContamination, Moment, Wasserstein, wasserstein_mmse_joint
 from ._registry import Experiment, Report, Row, register
 from ._tune import TuningProblem
 
@@ -81,6 +81,80 @@ def scenario(
     noise = OutlierNoise(model.R, prob if outliers else 0.0, magnitude)
     perturb = UniformPerturbation(jnp.array([[0.0, 1.0], [0.0, 0.0]]), alpha)
     return simulate(key, model, prior(), num_steps, num_runs, measurement_noise=noise, transition_perturbation=perturb)
+
+
+def joint_noise_covariance(form: str = "independent", dtype=None) -> jnp.ndarray:
+    """Covariance of the part of `(x_k, y_k)` not explained by `x_{k−1}` that a WKF adds to
+    `[F; HF] P [F; HF]ᵀ` to form its nominal joint covariance (Shafieezadeh-Abadeh et al.
+    2018, as adapted by Wang & Ye). `form`:
+
+    - `"independent"`: `[[Q, QHᵀ], [HQ, HQHᵀ + R]]`, independent `w` and `v` — the model of
+      Sec. VII, what `WassersteinKF` uses, and the authors' current WKF code;
+    - `"sqrt-broadcast"`: `B Bᵀ` with `B = [Q^½; H Q^½ + R^½ 1ᵀ]` (`Q^½` the symmetric square
+      root), i.e. a scalar `R^½` added to *each* entry of the row `H Q^½` instead of a separate
+      noise column: it models `v = R^½ (z₁ + z₂)`, variance `2R`, correlated with `w = Q^½ z`.
+      This is the form of the WKF in the authors' earlier code (Wang, Wu & Lim 2021) and in the
+      first published version of their t-distribution experiment;
+    - `"block-diagonal"`: `blkdiag(Q, HQHᵀ + R)`, the cross term `QHᵀ` dropped (the first
+      published version of the WKF of their Tables I–III folder);
+    - `"squared"`: the square of the `"independent"` matrix (a covariance passed where a
+      square-root factor was expected; a later version of the t-distribution experiment)."""
+    m = nominal_model(dtype)
+    q, h, r = m.Q, m.H, m.R
+    full = jnp.block([[q, q @ h.T], [h @ q, h @ q @ h.T + r]])
+    if form == "independent":
+        return full
+    if form == "sqrt-broadcast":
+        w, v = jnp.linalg.eigh(q)
+        q_half = (v * jnp.sqrt(w)) @ v.T
+        b = jnp.concatenate([q_half, h @ q_half + jnp.sqrt(r[0, 0])], axis=0)
+        return b @ b.T
+    if form == "block-diagonal":
+        return jax.scipy.linalg.block_diag(q, h @ q @ h.T + r)
+    if form == "squared":
+        return full @ full.T
+    raise ValueError(f"unknown form {form!r}")
+
+
+def wkf_gains(radius: float, num_steps: int, noise: jnp.ndarray, p0=None, *, tol: float = 1e-13) -> np.ndarray:
+    """Gains `G_t` (`(T, 2, 1)`) of a WKF whose nominal joint covariance is
+    `[F; HF] P [F; HF]ᵀ + noise`, worst case solved exactly by `jdrkf.sets.wasserstein_mmse_joint`,
+    `P ← S_xx − G S_yx`. The recursion never sees the data, so the estimate is the linear filter
+    `x̂_k = F x̂_{k−1} + G_k (y_k − H F x̂_{k−1})` (`apply_gains`). Once the nominal covariance
+    stops changing (max change `< tol`) the last gain is repeated."""
+    m = nominal_model(noise.dtype)
+    a = jnp.concatenate([m.F, m.H @ m.F], axis=0)
+    radius = jnp.asarray(radius, noise.dtype)
+    p = jnp.eye(2, dtype=noise.dtype) if p0 is None else p0
+    gains, prev = np.zeros((num_steps, 2, 1)), None
+    for t in range(num_steps):
+        sigma = a @ p @ a.T + noise
+        if prev is not None and float(jnp.max(jnp.abs(sigma - prev))) < tol:
+            gains[t:] = gains[t - 1]
+            break
+        g, p = _wkf_step(sigma, radius)
+        gains[t], prev = np.asarray(g), sigma
+    return gains
+
+
+@jax.jit
+def _wkf_step(sigma, radius):
+    s = wasserstein_mmse_joint(sigma, 2, radius).cov
+    g = jnp.linalg.solve(s[2:, 2:], s[2:, :2]).T
+    return g, s[:2, :2] - g @ s[2:, :2]
+
+
+def apply_gains(gains: np.ndarray, observations) -> np.ndarray:
+    """Filtered means `(runs, T, 2)` of the linear filter with gains `(T, 2, 1)`, `x̂_0 = 0`."""
+    f = np.asarray(nominal_model().F, np.float64)
+    h = np.asarray(nominal_model().H, np.float64)[0]
+    y = np.asarray(observations, np.float64)[..., 0]
+    xh, out = np.zeros((y.shape[0], 2)), np.zeros((*y.shape, 2))
+    for t in range(y.shape[1]):
+        xp = xh @ f.T
+        xh = xp + (y[:, t] - xp @ h)[:, None] * gains[t][:, 0][None, :]
+        out[:, t] = xh
+    return out
 
 
 def mkf(theta2: float = MKF_THETA2) -> DRKF:
@@ -178,10 +252,9 @@ def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress
         )
     if outliers:
         notes.append(
-            "KF, tau-KF and WKF have no outlier model, so every ±100 outlier enters their update in full; "
-            "in our runs the WKF stays close to the KF. The paper's single-episode WKF number lies low in "
-            "our per-run distribution (percentile line below); we have not identified why."
+            "KF, tau-KF and WKF have no outlier model, so every ±100 outlier enters their update in full."
         )
+        notes.append(_wkf_note(name, traj, np.asarray(out["KF"]["rmse"]), np.asarray(out["WKF"]["rmse"]), num_steps))
         realized = float(np.mean(np.asarray(traj.outliers)))
         notes.append(f"Outliers: ±{OUTLIER_MAGNITUDE:g} per channel with probability {OUTLIER_PROB}; realized rate {realized:.2%}.")
     notes += _swap_notes(paper, {f: np.asarray(out[f]["rmse"]) for f in flts})
@@ -191,13 +264,20 @@ def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress
             notes.append(f"{f}: the paper's single-episode {paper[f]:g} is at or above {pct:.0f}% of our per-run RMSEs.")
     if not outliers:
         mean = {r.filter: r.mean for r in rows}
+        mk, wk, nc = (np.asarray(out[f]["rmse"]) for f in ("MKF", "WKF", "MKF-no-clip"))
+        order = paper["MKF"] / paper["WKF"]
         notes.append(
             "Without outliers, Huber clipping only discards information: the MKF (clipping at k = 1.4 as in "
             f"the paper) has RMSE {mean['MKF']:.3g} here, the same filter without an outlier model "
             f"(MKF-no-clip) {mean['MKF-no-clip']:.3g}; HKF vs KF shows the same cost (ours {mean['HKF']:.3g} vs "
-            f"{mean['KF']:.3g}; paper 14.74 vs 14.52). The paper's tau-KF, MKF and WKF (9.90, 9.91, 9.95) tie "
-            "within 0.5% on one episode, with the MKF's θ₂ picked post hoc on that episode, so a different "
-            "order among these three is within the paper's own noise."
+            f"{mean['KF']:.3g}; paper 14.74 vs 14.52). The authors' MKF code clips too (threshold k·√θ₂ on the "
+            "innovation normalized by the nominal S) and gives our numbers on identical data "
+            "(benchmarks/wang_ye_gaps.py); their own stored 5000-step run at α = 1 without outliers (k = 2, "
+            "ε = 0) has MKF 11.45 vs WKF 10.39, the order we find. The paper's single episode lies within our "
+            f"spread: its MKF {paper['MKF']:g} is at or above {100 * np.mean(mk <= paper['MKF']):.0f}% of our "
+            f"per-run MKF RMSEs; its order, MKF/WKF ≤ {order:.3f}, holds in {100 * np.mean(mk / wk <= order):.0f}% "
+            f"of our runs (paired; mean MKF/WKF {np.mean(mk / wk):.3f}), and in {100 * np.mean(nc / wk <= order):.0f}% "
+            "for MKF-no-clip — one episode cannot tell whether the paper's run clipped."
         )
     theta2 = float(fitted.params[int(np.argmin(fitted.losses)), 0])
     notes += [
@@ -216,6 +296,29 @@ def _run(name: str, alpha: float, outliers: bool, runs: int, seed: int, progress
     if curves:
         report.curves = {f: np.asarray(out[f]["squared_error"]) for f in flts}  # per run: the figure draws 95% bands
     return report
+
+
+def _wkf_note(name: str, traj, kf_rmse: np.ndarray, wkf_rmse: np.ndarray, num_steps: int) -> str:
+    """The WKF gap, computed on this run: our WKF/KF ratio against that of a WKF with the nominal
+    joint covariance the authors' published runs used (`joint_noise_covariance("sqrt-broadcast")`)."""
+    gains = wkf_gains(WKF_RHO, num_steps, joint_noise_covariance("sqrt-broadcast"))
+    est = apply_gains(gains, traj.observations)
+    auth = np.sqrt(np.mean(np.sum((np.asarray(traj.states, np.float64) - est) ** 2, -1), -1))
+    ours_m, (ours_lo, ours_hi) = metrics.mean_ci(wkf_rmse / kf_rmse)
+    auth_m, (auth_lo, auth_hi) = metrics.mean_ci(auth / kf_rmse)
+    target = PAPER[name]["WKF"] / PAPER[name]["KF"]
+    pct = 100.0 * float(np.mean(auth / kf_rmse <= target))
+    return (
+        f"WKF vs the paper: ours is the WKF of Shafieezadeh-Abadeh et al. on the model of Sec. VII (independent "
+        f"process and measurement noise), WKF/KF = {ours_m:.3f} [{ours_lo:.3f}, {ours_hi:.3f}] on these runs "
+        f"(paper {target:.3f}). The authors' published WKF numbers (these tables, their stored breakdown "
+        "runs) fit a WKF whose nominal joint covariance adds B Bᵀ with B = [Q^½; H Q^½ + R^½ 1ᵀ] — R^½ added to "
+        "each entry of the row H Q^½, i.e. measurement noise of variance 2R correlated with the process noise "
+        "(the WKF of their earlier code) — not the model's [[Q, QHᵀ], [HQ, HQHᵀ + R]]; the Results.mat stored "
+        "with their code (WKF 15.86 < KF 17.30) fits yet another version, blkdiag(Q, HQHᵀ + R). That WKF, run on the "
+        f"same runs (exact solver, ρ = {WKF_RHO}), gives WKF/KF = {auth_m:.3f} [{auth_lo:.3f}, {auth_hi:.3f}]; "
+        f"the paper's ratio is at or above {pct:.0f}% of its per-run ratios. Evidence: benchmarks/wang_ye_gaps.py."
+    )
 
 
 def _swap_notes(paper: dict, values: dict) -> list[str]:

@@ -1,0 +1,535 @@
+#!/usr/bin/env python
+"""Wang & Ye (2022), Tables I–III: the two gaps between jdrkf's reproductions
+(`jdrkf reproduce wang-ye-table1/2/3`) and the paper, explained with an independent
+NumPy oracle of the authors' MATLAB code (`Spratm-Asleaf/DRSE-Outlier`).
+
+Gap A — the WKF (Shafieezadeh-Abadeh et al. 2018, radius ρ = 0.1) is ~15% above the
+paper in Tables II–III and worse than the KF in our runs, while the paper has WKF/KF =
+16.56/16.14 (Table II) and the authors' stored `Results.mat` 15.86/17.30.
+Gap B — Table I MKF (α = 1, no outliers): ours 11.09 vs the paper's 9.91.
+
+What the script does (all NumPy oracles are written from the authors' algorithm
+descriptions, not from jdrkf):
+
+1. Agreement on identical episodes (simulated by `jdrkf.experiments.wang_ye.scenario`):
+   jdrkf's KF, HKF, MKF and WKF against the oracle's KF, `Huber.m`, `MKF.m` and `WKF.m`
+   + `FrankWolfe.m` (step 2/(2+k), bisection for γ to 1e-8, stop at relative duality gap
+   1e-4 or 1000 iterations; x̂ = μx + G(y − μy), P = Sxx − G Syx). The WKF covariance path
+   is data independent, so the WKF is a linear filter with a fixed gain sequence; the
+   script also checks that jdrkf's `WassersteinKF` equals the linear filter with the gains
+   of `wang_ye.wkf_gains` (jdrkf's exact solver).
+2. Gap A: the WKF/KF RMSE ratio, per episode, under one protocol change at a time (outlier
+   magnitude, horizon, outlier rate, radius convention, Δ fixed per episode, the Frank–Wolfe
+   tolerance) and under the four nominal joint covariances found in the authors' code
+   history (`wang_ye.joint_noise_covariance`: "independent" — the model, their current
+   code; "sqrt-broadcast" — `B Bᵀ`, `B = [Q^½; H Q^½ + R^½ 1ᵀ]`, their earlier WKF;
+   "block-diagonal" — cross term dropped; "squared"). Targets: the paper's Tables I–III, the
+   stored `Results.mat`, the stored breakdown runs (T = 10⁴, ±50 outliers, α ∈ {0, 1},
+   ε_real ∈ {0.1, 0.3, 0.5}) and the stored 5000-step Large-Scale runs.
+3. Gap B: Table I's MKF under its stated settings (k = 1.4, ε = 0.05, θ₂ = 1.02) and
+   variants (no clipping; k = 2, ε = 0; θ picked per episode as the authors' FindBestGamma;
+   Δ fixed per episode), against the paper's 9.91 and its MKF/WKF order, plus the stored
+   5000-step α = 1 run (k = 2, ε = 0: MKF 11.45, WKF 10.39, KF 14.18).
+
+Every number is a mean over seeded episodes with a 95% Student-t interval; a paper value
+is "consistent" with a setting when it lies in the central 95% of that setting's
+per-episode values (empirical 2.5–97.5 percentiles with ≥ 100 episodes, else mean ± 1.96 sd).
+
+Usage: `python benchmarks/wang_ye_gaps.py [--quick] [--seed 0] [--out benchmarks/results]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from math import erf, sqrt
+
+import numpy as np
+
+# ----------------------------------------------------------------------------------------------
+# NumPy oracle of the authors' MATLAB code (Wang & Ye 2022, Sec. VII; their Standard folder)
+# ----------------------------------------------------------------------------------------------
+
+F = np.array([[0.9802, 0.0196], [0.0, 0.9802]])
+H = np.array([[1.0, -1.0]])
+Q = np.array([[1.9608, 0.0195], [0.0195, 1.9605]])
+R = np.array([[1.0]])
+FORMS = ("independent", "sqrt-broadcast", "block-diagonal", "squared")
+
+
+def oracle_noise(form: str) -> np.ndarray:
+    """The 3×3 matrix added to `[F; HF] P [F; HF]ᵀ` by each version of the authors' `WKF.m`."""
+    full = np.block([[Q, Q @ H.T], [H @ Q, H @ Q @ H.T + R]])
+    if form == "independent":
+        return full
+    if form == "sqrt-broadcast":  # B_aug = [G*Q^0.5; H*G*Q^0.5 + R^0.5]; Sigma = ... + B_aug*B_aug'
+        w, v = np.linalg.eigh(Q)
+        qh = (v * np.sqrt(w)) @ v.T
+        b = np.vstack([qh, H @ qh + np.sqrt(R[0, 0])])
+        return b @ b.T
+    if form == "block-diagonal":  # B_aug = blkdiag(GQG', HGQG'H' + R)
+        out = np.zeros((3, 3))
+        out[:2, :2], out[2:, 2:] = Q, H @ Q @ H.T + R
+        return out
+    if form == "squared":  # B_aug = the joint covariance; Sigma = ... + B_aug*B_aug'
+        return full @ full.T
+    raise ValueError(form)
+
+
+def bisection(sigma, d_mat, rho, bi_tol=1e-8):
+    """`my_bisection` of `FrankWolfe.m`: the linear oracle L = γ²(γI − D)⁻¹Σ(γI − D)⁻¹."""
+    d = d_mat.shape[0]
+    w, v = np.linalg.eigh(d_mat)
+    lam1, v1 = w[-1], v[:, -1]
+    lb = lam1 * (1 + np.sqrt(v1 @ sigma @ v1) / rho)
+    ub = lam1 * (1 + np.sqrt(np.trace(sigma)) / rho)
+    eye = np.eye(d)
+    for _ in range(1000):
+        g = (lb + ub) / 2
+        d_inv = g * np.linalg.inv(g * eye - d_mat)
+        lin = d_inv @ sigma @ d_inv
+        m = eye - d_inv
+        h_val = rho**2 - np.sum(sigma * (m @ m))
+        if h_val < 0:
+            lb = g
+        else:
+            ub = g
+        delta = g * (rho**2 - np.trace(sigma)) + g * np.sum(d_inv * sigma) - np.sum(lin * d_mat)
+        if h_val >= 0 and delta < bi_tol:
+            break
+    return lin
+
+
+def frank_wolfe(sigma, rho, n=2, tol=1e-4, iter_max=1000):
+    """`FrankWolfe.m`: returns (gain G, worst-case covariance S, iterations)."""
+    s = sigma.copy()
+    if rho == 0:
+        return s[:n, n:] @ np.linalg.inv(s[n:, n:]), s, 0
+    for it in range(iter_max + 1):
+        g = s[:n, n:] @ np.linalg.inv(s[n:, n:])
+        obj = np.trace(s[:n, :n] - g @ s[n:, :n])
+        a = np.hstack([np.eye(n), -g])
+        d_mat = a.T @ a
+        lin = bisection(sigma, d_mat, rho)
+        if abs(np.sum((lin - s) * d_mat)) / obj < tol:
+            break
+        step = 2 / (2 + it)
+        s = (1 - step) * s + step * lin
+    return g, s, it
+
+
+def oracle_wkf_gains(num_steps, rho=0.1, form="independent", tol=1e-4, iter_max=1000, p0=None):
+    """Gain sequence `(T, 2, 1)` of `WKF.m` (nominal F; x̂₀ = 0, P₀ = I). Data independent; once the
+    nominal covariance repeats to 1e-13 the previous solution is reused (same input, same output)."""
+    a = np.vstack([F, H @ F])
+    noise = oracle_noise(form)
+    p = np.eye(2) if p0 is None else p0
+    gains, prev = np.zeros((num_steps, 2, 1)), None
+    for t in range(num_steps):
+        sigma = a @ p @ a.T + noise
+        if prev is not None and np.max(np.abs(sigma - prev[0])) < 1e-13:
+            g, s = prev[1], prev[2]
+        else:
+            g, s, _ = frank_wolfe(sigma, rho, 2, tol, iter_max)
+        prev = (sigma, g, s)
+        gains[t] = g
+        p = s[:2, :2] - g @ s[2:, :2]
+    return gains
+
+
+def oracle_kf_gains(num_steps, p0=None):
+    p = np.eye(2) if p0 is None else p0
+    gains = np.zeros((num_steps, 2, 1))
+    for t in range(num_steps):
+        m = F @ p @ F.T + Q
+        k = m @ H.T / (H @ m @ H.T + R)
+        gains[t], p = k, m - k @ H @ m
+    return gains
+
+
+def oracle_linear(gains, y):
+    """x̂_t = F x̂ + K_t (y_t − H F x̂), x̂₀ = 0; y `(E, T)` -> `(E, T, 2)`."""
+    xh, out = np.zeros((y.shape[0], 2)), np.zeros((*y.shape, 2))
+    for t in range(y.shape[1]):
+        xp = xh @ F.T
+        xh = xp + (y[:, t] - xp @ H[0])[:, None] * gains[t][:, 0][None, :]
+        out[:, t] = xh
+    return out
+
+
+def _phi(x):
+    return 0.5 * (1 + erf(x / sqrt(2)))
+
+
+def oracle_mkf(y, k=1.4, eps=0.05, theta2=1.02):
+    """`MKF.m` (`theta2 = 1` gives `Huber.m`): Σx = θ₂(FPFᵀ + Q), Σv = θ₂R, S = HΣxHᵀ + Σv,
+    x̂ += ΣxHᵀS^-½ ψ_k(S^-½ (y − HFx̂)), P = Σx − ΣxHᵀS⁻¹HΣx (1 − ε)(1 − 2Φ(−k)). `y`: `(E, T)`,
+    or `(E, T)` with `theta2` an `(E,)` array (one θ₂ per episode)."""
+    theta2 = np.broadcast_to(np.asarray(theta2, float), (y.shape[0],))
+    xh, out = np.zeros((y.shape[0], 2)), np.zeros((*y.shape, 2))
+    p = np.broadcast_to(np.eye(2), (y.shape[0], 2, 2)).copy()
+    c = (1 - eps) * (1 - 2 * _phi(-k))
+    for t in range(y.shape[1]):
+        xp = xh @ F.T
+        sx = theta2[:, None, None] * (F @ p @ F.T + Q)
+        sxh = sx @ H[0]                                       # (E, 2)
+        s = sxh @ H[0] + theta2 * R[0, 0]                     # (E,)
+        z = np.clip((y[:, t] - xp @ H[0]) / np.sqrt(s), -k, k)
+        xh = xp + (z / np.sqrt(s))[:, None] * sxh
+        out[:, t] = xh
+        p = sx - c * sxh[:, :, None] * sxh[:, None, :] / s[:, None, None]
+    return out
+
+
+def oracle_simulate(rng, episodes, num_steps, alpha, p_out, magnitude, fixed_delta=False):
+    """`GenerateData.m` (Standard): x₀ ~ N(0, I); F_t = F + [[0, αΔ], [0, 0]], Δ ~ U[−1, 1] redrawn
+    every step (or drawn once, `fixed_delta`); w = chol(Q) z (MATLAB's upper factor); y = Hx + v;
+    with probability `p_out` add ±`magnitude`."""
+    u = np.linalg.cholesky(Q).T
+    x = np.zeros((episodes, num_steps, 2))
+    y = np.zeros((episodes, num_steps))
+    prev = rng.standard_normal((episodes, 2))
+    delta = 2 * rng.random(episodes) - 1
+    for t in range(num_steps):
+        f12 = F[0, 1] + alpha * delta
+        nxt = np.stack([F[0, 0] * prev[:, 0] + f12 * prev[:, 1], F[1, 1] * prev[:, 1]], 1)
+        nxt = nxt + rng.standard_normal((episodes, 2)) @ u.T
+        yt = nxt @ H[0] + rng.standard_normal(episodes)
+        if not fixed_delta:
+            delta = 2 * rng.random(episodes) - 1
+        hit = rng.random(episodes) < p_out
+        sign = np.where(rng.random(episodes) < 0.5, -1.0, 1.0)
+        x[:, t], y[:, t], prev = nxt, yt + hit * sign * magnitude, nxt
+    return x, y
+
+
+def rmse(x, xh):
+    return np.sqrt(np.mean(np.sum((x - xh) ** 2, -1), -1))
+
+
+# ----------------------------------------------------------------------------------------------
+# Statistics
+# ----------------------------------------------------------------------------------------------
+
+
+def mean_ci(v):
+    from scipy import stats
+
+    v = np.asarray(v, float)
+    m, se = float(v.mean()), float(v.std(ddof=1) / np.sqrt(v.size))
+    t = float(stats.t.ppf(0.975, v.size - 1))
+    return m, (m - t * se, m + t * se)
+
+
+def summarize(values, target=None):
+    v = np.asarray(values, float)
+    m, ci = mean_ci(v)
+    out = {"mean": m, "ci95": list(ci), "sd": float(v.std(ddof=1)), "episodes": int(v.size),
+           "p2.5": float(np.percentile(v, 2.5)), "p97.5": float(np.percentile(v, 97.5))}
+    if target is not None:
+        out["target"] = float(target)
+        out["target_percentile"] = 100.0 * float(np.mean(v <= target))
+        out["z"] = (target - m) / out["sd"]
+        if v.size >= 100:
+            out["consistent"] = bool(out["p2.5"] <= target <= out["p97.5"])
+        else:
+            out["consistent"] = bool(abs(out["z"]) < 1.96)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Targets (RMSE ratios WKF/KF) and data settings
+# ----------------------------------------------------------------------------------------------
+
+# name: (alpha, outlier prob, magnitude, T, WKF/KF target, source)
+TARGETS_A = {
+    "Table I": (1.0, 0.0, 100.0, 1000, 9.95 / 14.52, "paper Table I (α=1, no outliers)"),
+    "Table II": (0.0, 0.05, 100.0, 1000, 16.56 / 16.14, "paper Table II (α=0, 5% ±100)"),
+    "Table III": (1.0, 0.05, 100.0, 1000, 16.94 / 21.04, "paper Table III (α=1, 5% ±100)"),
+    "Results.mat": (0.0, 0.059, 100.0, 1000, 15.86 / 17.30, "authors' stored Results.mat (α=0, ±100, realized 5.9%)"),
+    "LS α=0": (0.0, 0.051, 50.0, 5000, 12.25 / 11.77, "stored Large-Scale run (2-state, T=5000, α=0, ±50, 5.1%)"),
+    "LS α=1": (1.0, 0.0, 50.0, 5000, 10.39 / 14.18, "stored Large-Scale run (2-state, T=5000, α=1, no outliers)"),
+    "BD α=0 ε=.1": (0.0, 0.1, 50.0, 10000, 13.89 / 13.08, "stored breakdown run (T=1e4, ±50)"),
+    "BD α=0 ε=.3": (0.0, 0.3, 50.0, 10000, 20.69 / 19.71, "stored breakdown run (T=1e4, ±50)"),
+    "BD α=0 ε=.5": (0.0, 0.5, 50.0, 10000, 25.82 / 24.45, "stored breakdown run (T=1e4, ±50)"),
+    "BD α=1 ε=.1": (1.0, 0.1, 50.0, 10000, 13.94 / 15.25, "stored breakdown run (T=1e4, ±50)"),
+    "BD α=1 ε=.3": (1.0, 0.3, 50.0, 10000, 21.61 / 23.16, "stored breakdown run (T=1e4, ±50)"),
+    "BD α=1 ε=.5": (1.0, 0.5, 50.0, 10000, 25.85 / 26.47, "stored breakdown run (T=1e4, ±50)"),
+}
+PAPER_TABLES = ("Table I", "Table II", "Table III")
+
+# Gap A protocol variants (one change from the authors' current code on the paper's protocol).
+# key: (description, form, radius, FW tol, data change)
+VARIANTS_A = {
+    "current code": ("authors' current WKF.m (independent noise), FW tol 1e-4", "independent", 0.1, 1e-4, {}),
+    "exact solver": ("as above, worst case solved exactly (jdrkf's WassersteinKF)", "independent", 0.1, "jdrkf", {}),
+    "±50 outliers": ("outlier magnitude 50 instead of 100", "independent", 0.1, 1e-4, {"magnitude": 50.0}),
+    "T=200": ("episode of 200 steps", "independent", 0.1, 1e-4, {"T": 200}),
+    "rate 5.9%": ("outlier probability 0.059 (Results.mat's realized rate)", "independent", 0.1, 1e-4, {"p": 0.059}),
+    "Δ fixed": ("Δ drawn once per episode (GenerateData's 'fixed' option)", "independent", 0.1, 1e-4, {"fixed": True}),
+    "radius √0.1": ("radius convention ρ² = 0.1 (ρ = 0.316)", "independent", 0.1**0.5, 1e-4, {}),
+    "radius 0.03": ("radius 0.03 (fits Table II's ratio)", "independent", 0.03, 1e-4, {}),
+    "sqrt-broadcast": ("nominal noise B Bᵀ, B = [Q^½; HQ^½ + R^½ 1ᵀ] (authors' earlier WKF.m)", "sqrt-broadcast", 0.1, 1e-4, {}),
+    "block-diagonal": ("nominal noise blkdiag(Q, HQHᵀ + R) (first published Standard WKF.m)", "block-diagonal", 0.1, 1e-4, {}),
+    "squared": ("nominal noise = joint covariance squared (a t-distribution WKF.m version)", "squared", 0.1, 1e-4, {}),
+}
+FORM_VARIANTS = ("current code", "exact solver", "sqrt-broadcast", "block-diagonal", "squared")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer episodes and shorter long runs (smoke test)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--episodes", type=int, default=None, help="episodes per T=1000 setting (default 400; quick 60)")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
+    args = ap.parse_args(argv)
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # the benchmark process, not the library
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import jax.numpy as jnp
+
+    from _provenance import git_info, loadavg, package_source_hash, portable_path, versions
+    from jdrkf import KalmanFilter, WassersteinKF, metrics
+    from jdrkf._montecarlo import montecarlo
+    from jdrkf.experiments import wang_ye as wy
+
+    quick = args.quick
+    episodes = args.episodes or (60 if quick else 400)
+    long_eps = {5000: 8 if quick else 40, 10000: 4 if quick else 16}
+    agree_eps, agree_steps = (8, 300) if quick else (64, 1000)
+    theta_step = 0.005 if quick else 0.002
+    t_start = time.time()
+    ss = np.random.SeedSequence(args.seed)
+    res = {"seed": args.seed, "quick": quick, "episodes_T1000": episodes, "episodes_long": {str(k): v for k, v in long_eps.items()}}
+
+    def log(msg):
+        print(f"[{time.time() - t_start:6.1f}s] {msg}", flush=True)
+
+    # ---- 1. agreement with jdrkf on identical episodes ------------------------------------
+    agreement = {}
+    model, p0 = wy.nominal_model(), wy.prior()
+    for table, alpha, outl in (("wang-ye-table1", 1.0, False), ("wang-ye-table2", 0.0, True)):
+        traj = wy.scenario(jax.random.key(args.seed), agree_eps, alpha, outl, agree_steps)
+        flts = {"KF": KalmanFilter(throw=False), "HKF": wy.filters()["HKF"], "MKF": wy.mkf(),
+                "WKF": WassersteinKF(wy.WKF_RHO, throw=False)}
+        out = montecarlo(flts, model, p0, traj, metrics={"rmse": lambda tr, r: metrics.rmse(tr.states, r.filtered_means)})
+        x, y = np.asarray(traj.states), np.asarray(traj.observations)[..., 0]
+        orc = {"KF": rmse(x, oracle_linear(oracle_kf_gains(agree_steps), y)),
+               "HKF": rmse(x, oracle_mkf(y, wy.HUBER_K, wy.EPS, 1.0)),
+               "MKF": rmse(x, oracle_mkf(y, wy.HUBER_K, wy.EPS, wy.MKF_THETA2)),
+               "WKF": rmse(x, oracle_linear(oracle_wkf_gains(agree_steps), y))}
+        lin = rmse(x, wy.apply_gains(wy.wkf_gains(wy.WKF_RHO, agree_steps, wy.joint_noise_covariance()), traj.observations))
+        entry = {}
+        for f in flts:
+            ours = np.asarray(out[f]["rmse"])
+            rel = (ours - orc[f]) / orc[f]
+            entry[f] = {"ours_mean": float(ours.mean()), "oracle_mean": float(orc[f].mean()),
+                        "max_abs_rel_diff": float(np.max(np.abs(rel))), "mean_rel_diff": float(rel.mean())}
+        entry["WKF (linear filter, jdrkf gains)"] = {
+            "max_abs_rel_diff_vs_WassersteinKF": float(np.max(np.abs(lin / np.asarray(out["WKF"]["rmse"]) - 1)))}
+        agreement[table] = {"episodes": agree_eps, "T": agree_steps, "filters": entry}
+        log(f"agreement {table}: " + ", ".join(f"{f} {v['max_abs_rel_diff']:.1e}" for f, v in entry.items() if "max_abs_rel_diff" in v))
+    res["agreement"] = agreement
+
+    # steady-state WKF gain: oracle FW (authors' tolerance, and run longer) vs jdrkf's exact solver
+    t_max = 10000
+    gains_exact = {form: wy.wkf_gains(wy.WKF_RHO, t_max, wy.joint_noise_covariance(form)) for form in FORMS}
+    log("jdrkf gains done")
+    gains, cache = {}, {}
+    for name, (_, form, radius, tol, _) in VARIANTS_A.items():
+        if tol == "jdrkf":
+            gains[name] = gains_exact[form]
+        else:
+            if (form, radius, tol) not in cache:
+                cache[form, radius, tol] = oracle_wkf_gains(t_max, radius, form, tol)
+            gains[name] = cache[form, radius, tol]
+    kf_g = oracle_kf_gains(t_max)
+    log("oracle gains done")
+    steady = {"KF": kf_g[-1, :, 0].tolist()}
+    for form in FORMS:
+        steady[f"WKF {form}: jdrkf exact"] = gains_exact[form][-1, :, 0].tolist()
+    for name in FORM_VARIANTS:
+        if VARIANTS_A[name][3] != "jdrkf":
+            steady[f"WKF {VARIANTS_A[name][1]}: oracle FW tol 1e-4"] = gains[name][-1, :, 0].tolist()
+    # the authors' FW on the steady-state nominal covariance, run for longer (no early stop)
+    a_aug = np.vstack([F, H @ F])
+    g_ex = gains_exact["independent"][-1]
+    fw_conv = {}
+    # steady-state posterior covariance of jdrkf's exact WKF
+    p_prev = np.eye(2)
+    noise = oracle_noise("independent")
+    for t in range(3000):
+        sig = a_aug @ p_prev @ a_aug.T + noise
+        g, p_new = (np.asarray(v) for v in wy._wkf_step(jnp.asarray(sig), jnp.asarray(wy.WKF_RHO)))
+        if np.max(np.abs(p_new - p_prev)) < 1e-13:
+            break
+        p_prev = p_new
+    p_ss = p_prev
+    sig_ss = a_aug @ p_ss @ a_aug.T + noise
+    for iters in (2, 10, 100, 1000):
+        g_fw, _, _ = frank_wolfe(sig_ss, wy.WKF_RHO, 2, tol=0.0, iter_max=iters)
+        fw_conv[iters] = float(np.max(np.abs(g_fw - g_ex)) / np.max(np.abs(g_ex)))
+    g_def, _, it_def = frank_wolfe(sig_ss, wy.WKF_RHO, 2)
+    fw_conv["default (tol 1e-4)"] = float(np.max(np.abs(g_def - g_ex)) / np.max(np.abs(g_ex)))
+    fw_conv["default iterations"] = int(it_def)
+    res["steady_state_gains"] = steady
+    res["fw_gain_rel_error_vs_exact"] = fw_conv
+    log(f"FW convergence at the steady state: {fw_conv}")
+
+    # ---- 2. Gap A ----------------------------------------------------------------------------
+    data_cache = {}
+
+    def data(alpha, p, mag, T, fixed, eps_):
+        key = (alpha, p, mag, T, fixed, eps_)
+        if key not in data_cache:
+            rng = np.random.default_rng(ss.spawn(1)[0])
+            data_cache[key] = oracle_simulate(rng, eps_, T, alpha, p, mag, fixed)
+        return data_cache[key]
+
+    gap_a = {}
+    for name, (desc, form, radius, tol, change) in VARIANTS_A.items():
+        row = {"description": desc, "targets": {}}
+        targets = TARGETS_A if name in FORM_VARIANTS else {k: TARGETS_A[k] for k in (*PAPER_TABLES, "Results.mat")}
+        for tname, (alpha, p, mag, T, target, _) in targets.items():
+            if change.get("fixed") and alpha == 0:
+                continue
+            if ("magnitude" in change or "p" in change) and p == 0:
+                continue
+            if "p" in change and tname != "Table II":
+                continue
+            T_ = change.get("T", T)
+            eps_ = episodes if T_ <= 1000 else long_eps[T_]
+            if quick and T_ == 10000:
+                T_, eps_ = 5000, long_eps[5000] // 2
+            x, y = data(alpha, change.get("p", p), change.get("magnitude", mag), T_, change.get("fixed", False), eps_)
+            kf = rmse(x, oracle_linear(kf_g, y))
+            w = rmse(x, oracle_linear(gains[name], y))
+            row["targets"][tname] = summarize(w / kf, target) | {"T": T_, "wkf_mean": float(w.mean()), "kf_mean": float(kf.mean())}
+        gap_a[name] = row
+        log(f"gap A {name}: " + ", ".join(f"{k} {v['mean']:.3f} ({'ok' if v['consistent'] else 'X'})" for k, v in row["targets"].items()))
+    res["gap_a"] = gap_a
+
+    # ---- 3. Gap B ----------------------------------------------------------------------------
+    x, y = data(1.0, 0.0, 100.0, 1000, False, episodes)
+    kf = rmse(x, oracle_linear(kf_g, y))
+    wkf = {"sqrt-broadcast": rmse(x, oracle_linear(gains["sqrt-broadcast"], y)),
+           "independent": rmse(x, oracle_linear(gains["current code"], y))}
+    xf, yf = data(1.0, 0.0, 100.0, 1000, True, episodes)
+    kf_f = rmse(xf, oracle_linear(kf_g, yf))
+    wkf_f = rmse(xf, oracle_linear(gains["sqrt-broadcast"], yf))
+    thetas = np.arange(0.0, 0.1 + 1e-12, theta_step)
+    with np.errstate(over="ignore", invalid="ignore"):  # large θ diverges on some episodes: never the best
+        grid = np.stack([rmse(x, oracle_mkf(y, 1.4, 0.05, 1 + th)) for th in thetas])
+    grid = np.where(np.isfinite(grid), grid, np.inf)
+    mkf_variants = {
+        "paper settings (k=1.4, ε=0.05, θ₂=1.02)": (rmse(x, oracle_mkf(y, 1.4, 0.05, 1.02)), kf, wkf),
+        "no clipping (k=∞, ε=0, θ₂=1.02)": (rmse(x, oracle_mkf(y, np.inf, 0.0, 1.02)), kf, wkf),
+        "k=2, ε=0 (stored Large-Scale settings)": (rmse(x, oracle_mkf(y, 2.0, 0.0, 1.02)), kf, wkf),
+        "k=1.4, ε=0": (rmse(x, oracle_mkf(y, 1.4, 0.0, 1.02)), kf, wkf),
+        f"θ picked per episode (FindBestGamma, grid step {theta_step})": (grid.min(0), kf, wkf),
+        "Δ fixed per episode": (rmse(xf, oracle_mkf(yf, 1.4, 0.05, 1.02)), kf_f, {"sqrt-broadcast": wkf_f}),
+    }
+    gap_b = {"paper": {"MKF": 9.91, "WKF": 9.95, "KF": 14.52}, "variants": {},
+             "best_theta_histogram": {f"{t:.3f}": int(c) for t, c in zip(thetas, np.bincount(grid.argmin(0), minlength=thetas.size)) if c}}
+    for vname, (mk, kf_v, wk) in mkf_variants.items():
+        entry = {"MKF": summarize(mk, 9.91), "MKF/KF": summarize(mk / kf_v, 9.91 / 14.52)}
+        first = next(iter(wk.values()))
+        entry["P(MKF/KF <= paper and MKF/WKF <= paper)"] = float(np.mean((mk / kf_v <= 9.91 / 14.52) & (mk / first <= 9.91 / 9.95)))
+        for form, wv in wk.items():
+            r = mk / wv
+            entry[f"MKF/WKF[{form}]"] = summarize(r, 9.91 / 9.95) | {"P(ratio <= paper)": float(np.mean(r <= 9.91 / 9.95))}
+        gap_b["variants"][vname] = entry
+        log(f"gap B {vname}: MKF {entry['MKF']['mean']:.2f} pct(9.91) {entry['MKF']['target_percentile']:.0f}; "
+            f"MKF/WKF {entry['MKF/WKF[sqrt-broadcast]']['mean']:.3f} P(<=paper) {entry['MKF/WKF[sqrt-broadcast]']['P(ratio <= paper)']:.3f}")
+    # the authors' stored 5000-step α = 1 run without outliers (k = 2, ε = 0)
+    x5, y5 = data(1.0, 0.0, 50.0, 5000, False, long_eps[5000])
+    kf5 = rmse(x5, oracle_linear(kf_g, y5))
+    mk5 = rmse(x5, oracle_mkf(y5, 2.0, 0.0, 1.02))
+    gap_b["stored α=1 run (T=5000, k=2, ε=0)"] = {
+        "MKF/WKF[sqrt-broadcast]": summarize(mk5 / rmse(x5, oracle_linear(gains["sqrt-broadcast"], y5)), 11.45 / 10.39),
+        "MKF/WKF[independent]": summarize(mk5 / rmse(x5, oracle_linear(gains["current code"], y5)), 11.45 / 10.39),
+        "MKF/KF": summarize(mk5 / kf5, 11.45 / 14.18)}
+    res["gap_b"] = gap_b
+
+    res["wall_s"] = time.time() - t_start
+    res["provenance"] = {"versions": versions(("jax", "jaxlib", "numpy", "scipy", "jdrkf")), "git": git_info(),
+                         "jdrkf_source_sha256": package_source_hash(), "loadavg": loadavg()}
+    os.makedirs(args.out, exist_ok=True)
+    stem = os.path.join(args.out, "wang_ye_gaps" + ("_quick" if quick else ""))
+    with open(stem + ".json", "w") as f:
+        json.dump(res, f, indent=1, default=float)
+    with open(stem + ".md", "w") as f:
+        f.write(render(res))
+    log(f"wrote {portable_path(stem)}.md/.json")
+    return res
+
+
+def _fmt(s, digits=3):
+    return f"{s['mean']:.{digits}f} [{s['ci95'][0]:.{digits}f}, {s['ci95'][1]:.{digits}f}]"
+
+
+def render(res) -> str:
+    lines = ["# Wang & Ye (2022) Tables I–III: the WKF and Table I MKF gaps", "",
+             f"Seed {res['seed']}; {res['episodes_T1000']} episodes per 1000-step setting; "
+             f"{res['episodes_long']['5000']} / {res['episodes_long']['10000']} episodes of the 5000 / 10⁴-step settings"
+             + (" (quick: 10⁴-step settings run at 5000 steps)" if res["quick"] else "")
+             + f"; wall {res['wall_s']:.0f} s. Intervals: 95% Student-t for the mean over episodes. "
+             "Generated by `benchmarks/wang_ye_gaps.py`.", "",
+             "## 1. jdrkf vs an independent NumPy oracle of the authors' code, identical episodes", "",
+             "| table | filter | ours (mean RMSE) | oracle | max per-episode relative difference |", "|---|---|---|---|---|"]
+    for table, a in res["agreement"].items():
+        for f, v in a["filters"].items():
+            if "max_abs_rel_diff" in v:
+                lines.append(f"| {table} ({a['episodes']}×{a['T']}) | {f} | {v['ours_mean']:.4f} | {v['oracle_mean']:.4f} | {v['max_abs_rel_diff']:.1e} |")
+    t2 = res["agreement"]["wang-ye-table2"]["filters"]
+    lines += ["", "The oracle's WKF stops Frank–Wolfe at the authors' relative gap 1e-4 (1–2 iterations per step); jdrkf solves "
+              "each step exactly. The linear filter with jdrkf's exact WKF gains equals `WassersteinKF` to "
+              f"{t2['WKF (linear filter, jdrkf gains)']['max_abs_rel_diff_vs_WassersteinKF']:.1e} (the covariance path is data independent).",
+              "", "Steady-state gains (K for the KF, G for the WKF):", ""]
+    for k, v in res["steady_state_gains"].items():
+        lines.append(f"- {k}: [{v[0]:.5f}, {v[1]:.5f}]")
+    fw = res["fw_gain_rel_error_vs_exact"]
+    lines += ["", "The authors' Frank–Wolfe on the steady-state nominal covariance, relative gain error vs the exact solution: "
+              + ", ".join(f"{k} iterations {v:.1e}" for k, v in fw.items() if isinstance(k, int) or str(k).isdigit())
+              + f"; with its default stop ({fw['default iterations']} iterations) {fw['default (tol 1e-4)']:.1e}.", "",
+              "## 2. Gap A: WKF/KF RMSE ratio per episode, one change at a time", "",
+              "Each cell: mean ratio [95% CI] over episodes, then the percentile of the published ratio among the "
+              "per-episode ratios (✓: inside the central 95%, ✗: outside).", ""]
+    targets = list(TARGETS_A)
+    lines.append("| variant | " + " | ".join(f"{t} ({TARGETS_A[t][4]:.3f})" for t in targets) + " |")
+    lines.append("|---|" + "---|" * len(targets))
+    for name, row in res["gap_a"].items():
+        cells = []
+        for t in targets:
+            s = row["targets"].get(t)
+            cells.append("—" if s is None else f"{s['mean']:.3f} [{s['ci95'][0]:.3f}, {s['ci95'][1]:.3f}] {s['target_percentile']:.0f}% {'✓' if s['consistent'] else '✗'}")
+        lines.append(f"| {name}: {row['description']} | " + " | ".join(cells) + " |")
+    lines += ["", "Targets: " + "; ".join(f"{t}: {TARGETS_A[t][5]}" for t in targets) + ".", ""]
+    gb = res["gap_b"]
+    lines += ["## 3. Gap B: Table I MKF (α = 1, no outliers, T = 1000)", "",
+              "Paper: MKF 9.91, WKF 9.95, KF 14.52 (one episode). WKF[sqrt-broadcast] is the WKF that fits the authors' "
+              "published numbers (section 2); WKF[independent] is ours.", "",
+              "| MKF variant | MKF RMSE | percentile of 9.91 | MKF/KF (paper 0.683), percentile of 0.683 | MKF/WKF[sqrt-broadcast] (paper 0.996) | P(MKF/WKF ≤ 0.996) | P(both ratios ≤ the paper's) | MKF/WKF[independent] |",
+              "|---|---|---|---|---|---|---|---|"]
+    for vname, e in gb["variants"].items():
+        ind = e.get("MKF/WKF[independent]")
+        lines.append(f"| {vname} | {_fmt(e['MKF'], 2)} | {e['MKF']['target_percentile']:.0f}% | {_fmt(e['MKF/KF'])}, "
+                     f"{e['MKF/KF']['target_percentile']:.0f}% | "
+                     f"{_fmt(e['MKF/WKF[sqrt-broadcast]'])} | {e['MKF/WKF[sqrt-broadcast]']['P(ratio <= paper)']:.3f} | "
+                     f"{e['P(MKF/KF <= paper and MKF/WKF <= paper)']:.3f} | "
+                     + ("—" if ind is None else f"{_fmt(ind)} (P ≤ 0.996: {ind['P(ratio <= paper)']:.3f})") + " |")
+    st = gb["stored α=1 run (T=5000, k=2, ε=0)"]
+    lines += ["", f"θ picked per episode (argmin over the grid): {gb['best_theta_histogram']}.", "",
+              "Authors' stored 5000-step run at α = 1 without outliers (k = 2, ε = 0; MKF 11.45, WKF 10.39, KF 14.18): "
+              f"MKF/WKF[sqrt-broadcast] {_fmt(st['MKF/WKF[sqrt-broadcast]'])} (stored 1.102, z = {st['MKF/WKF[sqrt-broadcast]']['z']:.2f}), "
+              f"MKF/WKF[independent] {_fmt(st['MKF/WKF[independent]'])}, MKF/KF {_fmt(st['MKF/KF'])} (stored 0.807, z = {st['MKF/KF']['z']:.2f}).", ""]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
