@@ -90,3 +90,32 @@ def test_identity_report():
     # Case 1 (outliers): the robust filters beat the KF on position.
     assert mean[("STKF", "rmse_x1@y1")] < mean[("KF", "rmse_x1@y1")]
     assert mean[("VBKF-fixed", "rmse_x1@y1")] < mean[("KF", "rmse_x1@y1")]
+
+
+def test_process_outliers_recovers_y4_draws():
+    """y4 draws whole-vector ×900 process noise with probability 0.01 per step: the recovered
+    count is about 0.01 · T per run, and none in y3 (nominal process noise)."""
+    key = jax.random.key(3)
+    count, energy = lv.process_outliers(lv.torsion_scenario(key, "y4", 20, num_steps=1000))
+    assert count.shape == (20,) and 7 < count.mean() < 13
+    # an outlier's whitened energy is 900 χ²₅: mean 4500 per outlier
+    assert 2500 < energy.sum() / count.sum() < 6500
+    count3, energy3 = lv.process_outliers(lv.torsion_scenario(key, "y3", 5, num_steps=1000))
+    assert count3.sum() == 0 and energy3.sum() == 0.0
+
+
+def test_printed_identity_law():
+    """The paper's printed y2 law: variance factor 1 at t = 0 and 3 at 0.04π t = π/2 (t = 12.5 s)."""
+    np.testing.assert_allclose(lv._printed_variance_factor(np.array([0, 1250])), [1.0, 3.0], atol=1e-12)
+    tr = lv.identity_scenario(jax.random.key(0), "y2-printed", 200, num_steps=1300)
+    noise = np.asarray(tr.observations[..., 0] - tr.states[..., 0])
+    assert 0.25 < noise[:, 1200:1300].var() < 0.35 and 0.08 < noise[:, :50].var() < 0.12
+    with pytest.raises(ValueError, match="unknown identity case"):
+        lv.identity_scenario(jax.random.key(0), "y3", 2)
+
+
+@pytest.mark.slow
+def test_y4_note_is_computed():
+    rep = lv.run_torsion(runs=6, seed=4, num_steps=800, cases=("y4",))
+    note = next(n for n in rep.notes if n.startswith("y4 (Table IV Case 2)"))
+    assert "per 800-step run" in note and "expected 8" in note and "over the 1 runs (5%)" in note

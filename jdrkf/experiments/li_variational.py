@@ -334,14 +334,58 @@ def _best_notes(out_by_case: dict, paper: dict, names) -> list[str]:
     return notes
 
 
+# A whitened process draw ‖Q^{-1/2} w‖² above this is a y4 outlier: a nominal χ²₅ draw exceeds it
+# with probability ~1e-40, a ×900 draw falls below it with probability ~6e-4.
+OUTLIER_THRESHOLD = 200.0
+
+
+def process_outliers(tr) -> tuple[np.ndarray, np.ndarray]:
+    """Per run: the number of process-noise outliers and their energy `Σ ‖Q^{-1/2} w_k‖²`
+    over the outlier steps, with `w_k = G⁻¹(x_k − F x_{k−1})` recovered from the states of
+    `torsion_truth` (y4's ×900 draws; the simulation does not record process outliers)."""
+    truth = torsion_truth()
+    x = np.asarray(tr.states)
+    prev = np.concatenate([np.asarray(tr.initial_states)[:, None], x[:, :-1]], axis=1)
+    w = np.linalg.solve(np.asarray(truth.G), np.swapaxes(x - prev @ np.asarray(truth.F).T, 1, 2))
+    z2 = np.sum(np.swapaxes(w, 1, 2) ** 2 / np.diag(np.asarray(truth.Q)), axis=-1)
+    hit = z2 > OUTLIER_THRESHOLD
+    return hit.sum(axis=1), np.where(hit, z2, 0.0).sum(axis=1)
+
+
+def _log_ratio_to_paper(out: dict, paper: dict, idx) -> np.ndarray:
+    """`log(our mean over runs idx / paper)` for every (filter, state) of the paper."""
+    return np.array([np.log(np.mean(out[f]["rmse"][idx], axis=0) / np.asarray(p)) for f, p in paper.items() if f in out])
+
+
+def _y4_draw_note(tr, out: dict, steps: int) -> str:
+    """How y4's levels depend on the process-outlier draw, from this run's data."""
+    paper = PAPER_TORSION["y4"]
+    count, energy = process_outliers(tr)
+    kf = out["KF"]["rmse"][:, 3]
+    low = np.argsort(energy, kind="stable")[: max(1, len(energy) // 20)]
+    lr_all, lr_low = _log_ratio_to_paper(out, paper, slice(None)), _log_ratio_to_paper(out, paper, low)
+    r = np.corrcoef(energy, kf)[0, 1] if len(kf) > 2 else float("nan")
+    return (
+        f"y4 (Table IV Case 2): {count.mean():.1f} process-noise outliers (variance ×900) per {steps}-step run "
+        f"(range {count.min()}–{count.max()}; expected {PROC_OUTLIER_P * steps:.0f}); the KF's ω_m (x4) RMSE rises with "
+        f"their energy Σ‖Q^(-1/2)w‖² (correlation {r:.2f}). The paper's single run (the authors' rng(44); their "
+        f"MATLAB stream is not reproduced) has KF x4 = {paper['KF'][3]}, at percentile "
+        f"{100 * np.mean(kf <= paper['KF'][3]):.1f} of our runs. Over all runs our means exceed the paper's "
+        f"{lr_all.size} y4 numbers by a median factor {np.exp(np.median(lr_all)):.2f} (median |log ratio| "
+        f"{np.median(np.abs(lr_all)):.2f}); over the {len(low)} runs (5%) with the least outlier energy by "
+        f"{np.exp(np.median(lr_low)):.2f} (median |log ratio| {np.median(np.abs(lr_low)):.2f}): the level gap is "
+        "the paper's mild outlier draw, and the paired differences below are what a single run cannot resolve."
+    )
+
+
 def run_torsion(runs: int, seed: int, progress: bool = False, curves: bool = False, num_steps: int | None = None, cases=TORSION_CASES) -> Report:
     steps = NUM_STEPS if num_steps is None else num_steps
     key = jax.random.key(seed)
     model, prior = torsion_model(), torsion_prior()
-    rows, out_by_case, realized = [], {}, {}
+    rows, out_by_case, traj_by_case, realized = [], {}, {}, {}
     start = time.perf_counter()
     for j, case in enumerate(cases):
-        traj = torsion_scenario(jax.random.fold_in(key, j), case, runs, steps)
+        traj = traj_by_case[case] = torsion_scenario(jax.random.fold_in(key, j), case, runs, steps)
         flts = torsion_filters(case)
         prop = next(f for f in flts if f.startswith("STKF"))
         flts[f"{prop} (reweighted cov)"] = torsion_filters(case, "reweighted")[prop]
@@ -358,7 +402,7 @@ def run_torsion(runs: int, seed: int, progress: bool = False, curves: bool = Fal
         "outliers + slow-varying measurement noise; measurement outliers + slow-varying measurement noise); "
         "metrics are named after the scripts, e.g. rmse_x4@y2. States x1..x5 = [d, θ_m, θ_t, ω_m, ω_t] (the "
         "augmented state, as the authors' rms(statef − [d; state], 2)); the paper reports all five.",
-        f"Paper numbers are single unseeded runs ({NUM_STEPS} steps); ours are means over {runs} seeded runs of "
+        f"Paper numbers are single runs ({NUM_STEPS} steps; y2, y3 unseeded, y4 the authors' rng(44)); ours are means over {runs} seeded runs of "
         f"{steps} steps with 95% Student-t intervals, so paper numbers outside our intervals and rank swaps "
         "between close filters are expected.",
         "Settings follow the authors' code, not the printed text: R = 0.1 I₂ (paper eq. 57: 0.5 I₂); "
@@ -382,14 +426,11 @@ def run_torsion(runs: int, seed: int, progress: bool = False, curves: bool = Fal
         "row '… (reweighted cov)' (no paper number, not ranked) is the proposed filter with the library "
         "default (I − K̃H)P̃(I − K̃H)ᵀ + K̃R̃K̃ᵀ, for comparison.",
         f"Runtime of the Monte Carlo (all cases, {runs} runs × {steps} steps): {elapsed:.0f} s.",
-        "y4 (Table IV Case 2): about 20 process-noise outliers (variance ×900) hit each 2000-step run, and "
-        "where they fall drives the velocity RMSE; the paper's one run (rng(44)) has x4 (ω_m) below "
-        "nearly all of our runs for every filter, i.e. a mild outlier draw, so levels differ while the paired "
-        "differences below are what a single run cannot resolve: on our runs STKF-AR1 beats the KF on d and "
-        "ω_t but is slightly worse on θ_m, θ_t and ω_m (the paper has it best on all but θ_m).",
     ]
     if failed:
         report.notes.append(f"Runs whose filter reported a failure (fraction of successful runs): {failed}.")
+    if "y4" in out_by_case:
+        report.notes.append(_y4_draw_note(traj_by_case["y4"], out_by_case["y4"], steps))
     report.notes += _agreement_notes(report, cases, 5)
     report.notes += _spread_notes(out_by_case, {c: PAPER_TORSION[c] for c in cases})
     report.notes += _paired_notes(out_by_case, STATE_NAMES)
@@ -416,15 +457,23 @@ def _identity_amp(t):
     return (2.0 * s) ** 2 + 1.0
 
 
+def _printed_variance_factor(t):
+    """The paper's printed y2 law (eq. 57 form): variance × `2 sin²(0.04π t) + 1`, `t = index · dt`."""
+    return 2.0 * jnp.sin(0.04 * jnp.pi * DT * _float(t)) ** 2 + 1.0
+
+
 def identity_scenario(key, case: str, num_runs: int, num_steps: int | None = None):
+    """Simulate an identity case: y1, y2 (the authors' code) or "y2-printed" (the paper's printed law)."""
     model = identity_model()
     r = GaussianNoise(model.R)
     if case == "y1":
         meas = MixtureNoise(model.R, 0.05, 100.0)
     elif case == "y2":
         meas = ScaledNoise(r, lambda t: _identity_amp(t) ** 2)
+    elif case == "y2-printed":
+        meas = ScaledNoise(r, _printed_variance_factor)
     else:
-        raise ValueError(f"unknown identity case {case!r}; expected 'y1' or 'y2'")
+        raise ValueError(f"unknown identity case {case!r}; expected 'y1', 'y2' or 'y2-printed'")
     x0 = Gaussian(jnp.zeros(2), jnp.zeros((2, 2)))
     steps = IDENTITY_STEPS if num_steps is None else num_steps
     return simulate(key, model, x0, steps, num_runs, measurement_noise=meas)
@@ -470,6 +519,19 @@ def _iteration_values(flt, values: np.ndarray) -> np.ndarray:
     return values
 
 
+def _identity_y2_note(out: dict, printed_kf: np.ndarray, runs: int) -> str:
+    """Where Table III's y2 position numbers fall among our runs, and the KF under the printed law."""
+    paper = PAPER_IDENTITY["y2"]
+    pct = ", ".join(f"{f} {paper[f][0]} at percentile {100 * np.mean(out[f]['rmse'][:, 0] <= paper[f][0]):.1f}" for f in paper)
+    mean, (lo, hi) = metrics.mean_ci(printed_kf)
+    side = "below" if hi < paper["KF"][0] else "above" if lo > paper["KF"][0] else "around"
+    return (
+        f"y2 position RMSE (x1), the paper's single run among our {runs} runs: {pct}. We keep the authors' code law "
+        "(std × a(t), a up to 5). Side check with the printed law (variance × (2 sin²(0.04π t) + 1)) on the same "
+        f"number of runs: KF position RMSE {mean:.3f} [{lo:.3f}, {hi:.3f}], {side} the paper's {paper['KF'][0]}."
+    )
+
+
 def run_identity(runs: int, seed: int, progress: bool = False, curves: bool = False, num_steps: int | None = None) -> Report:
     steps = IDENTITY_STEPS if num_steps is None else num_steps
     key = jax.random.key(seed)
@@ -489,6 +551,8 @@ def run_identity(runs: int, seed: int, progress: bool = False, curves: bool = Fa
         for f, flt in flts.items():
             iters = _iteration_values(flt, out[f]["iterations"])
             iter_rows.append(Row.from_values(f, f"iterations@{case}", PAPER_IDENTITY_ITERATIONS[case].get(f), iters))
+    printed = montecarlo({"KF": KalmanFilter(throw=False)}, model, prior, identity_scenario(jax.random.fold_in(key, 2), "y2-printed", runs, steps),
+                         metrics={"rmse": _per_state_rmse}, chunk_size=500, progress=progress)["KF"]["rmse"][:, 0]
     elapsed = time.perf_counter() - start
     rows += iter_rows
     report = Report(experiment="li-identity", seed=seed, rows=rows)
@@ -510,10 +574,7 @@ def run_identity(runs: int, seed: int, progress: bool = False, curves: bool = Fa
         "The paper's Table III ties the robust pair (0.053/0.053, 0.081/0.081, 0.092/0.092, 0.086/0.086), so "
         "the 'Ranking … agrees' lines compare against an arbitrary order of the tied pair; the substantive "
         "claim, both robust/adaptive filters beat the KF, is checked by the paired intervals below.",
-        "y2: all our RMSEs (KF included) sit above the paper's single run, and its adaptive-filter numbers lie "
-        "below nearly all of our runs. We keep the authors' code law (std × a(t), a up to 5): a side check with "
-        "the printed law (variance × (2 sin²(0.04π t) + 1)) gave a KF position RMSE ≈ 0.066 over 50 runs (seed 0; measured once, not recomputed here), far "
-        "below the paper's 0.130, so the printed law is not what produced Table III either.",
+        _identity_y2_note(out_by_case["y2"], printed, runs),
         "iterations@y1/y2 (Table III's last column): average number of iterations per step, per run. STKF and "
         "STKF-AR1 report the fixed-point passes actually run (info['iterations'], at least 1; the count the "
         "authors' STKF.m / student_forward_adap.m store as iter = cnt − num, stopping when ‖x_j − x_{j−1}‖ ≤ "
