@@ -69,16 +69,20 @@ def markdown(result: dict) -> str:
         "- Each experiment ran as its own process (`python -m jdrkf.cli reproduce NAME --no-progress"
         f"{' --quick' if meta['quick'] else ''}`), one after the other: import, compilation, tuning and Monte "
         "Carlo included. CPU = user + system time of the process.",
-        f"- Goal: every default run within {GOAL_S:.0f} s of wall time on 2 cores.",
+        f"- Goal: every default run within {GOAL_S:.0f} s on 2 cores; \"within goal\" checks the CPU time, which bounds "
+        "the wall time of the same run on an otherwise idle machine (wall times measured while other jobs shared the "
+        "cores are longer).",
+        *([f"- Rows timed at different times (`--update`): each row gives its start and commit."] if "updated_from" in meta else []),
         "",
-        "| experiment | runs | wall s | CPU s | status | within goal |",
-        "|---|---:|---:|---:|---|---|",
+        "| experiment | runs | wall s | CPU s | status | within goal | timed |",
+        "|---|---:|---:|---:|---|---|---|",
     ]
     for r in result["rows"]:
-        ok = r["status"] == 0 and r["wall_s"] <= GOAL_S
+        ok = r["status"] == 0 and r["cpu_s"] <= GOAL_S
         lines.append(f"| {r['name']} | {r['runs']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
-                     f"{'ok' if r['status'] == 0 else r['status']} | {'yes' if ok else '**no**'} |")
-    n_ok = sum(r["status"] == 0 and r["wall_s"] <= GOAL_S for r in result["rows"])
+                     f"{'ok' if r['status'] == 0 else r['status']} | {'yes' if ok else '**no**'} | "
+                     f"{r['date']} ({r['commit'][:7]}) |")
+    n_ok = sum(r["status"] == 0 and r["cpu_s"] <= GOAL_S for r in result["rows"])
     lines += ["", f"{n_ok} of {len(result['rows'])} within the goal; total wall time "
                   f"{sum(r['wall_s'] for r in result['rows']) / 60:.1f} min."]
     return "\n".join(lines) + "\n"
@@ -90,6 +94,8 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="time the --quick runs instead of the defaults")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds before a run is stopped (default 1800)")
     p.add_argument("--store-reports", action="store_true", help="write each report to docs/reproductions/NAME.md and .json")
+    p.add_argument("--update", action="store_true",
+                   help="keep the other experiments' rows of the existing results file (re-time some after a change)")
     p.add_argument("--out", type=pathlib.Path, default=None,
                    help="output path without suffix (default benchmarks/results/reproduce_times_cpu)")
     args = p.parse_args(argv)
@@ -117,8 +123,16 @@ def main(argv=None) -> int:
             store.with_suffix(".md").write_text(report[:report.rindex("\nreport: ")].rstrip() + "\n")  # less the CLI's "report: PATH" line
         rows.append(row)
     meta["loadavg_end"] = _provenance.loadavg()
-    result = {"meta": meta, "goal_s": GOAL_S, "rows": [{k: v for k, v in r.items() if k != "report"} for r in rows]}
+    rows = [{**{k: v for k, v in r.items() if k != "report"}, "date": meta["date"], "commit": meta["git"]["commit"]} for r in rows]
     out = args.out or ROOT / "benchmarks" / "results" / "reproduce_times_cpu"
+    if args.update and out.with_suffix(".json").is_file():
+        old = json.loads(out.with_suffix(".json").read_text())
+        if old["meta"]["quick"] != args.quick:
+            raise SystemExit("--update: the existing results were timed in the other mode (--quick or not)")
+        rows += [r for r in old["rows"] if r["name"] not in names]
+        rows.sort(key=lambda r: r["name"])
+        meta["updated_from"] = old["meta"]["date"]
+    result = {"meta": meta, "goal_s": GOAL_S, "rows": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(result, indent=2))
     out.with_suffix(".md").write_text(markdown(result))
