@@ -234,14 +234,19 @@ def bracketed_newton(f: Callable, x0, lo, hi, max_iter, *, x_scale: float = 0.0,
     Each step shrinks the bracket with the sign of `f(x)` (`lo = x` where `f(x) < 0`, else
     `hi = x`) and takes the Newton step `x − f(x)/f'(x)` if it lands in the bracket
     (steps leaving it by a few ulps are clipped into it, since `f` may be evaluated twice
-    with different rounding), else bisects. From a start where `f ≥ 0` and `f` convex
-    (or `f ≤ 0` and `f` concave) the Newton steps are monotone and never bisect.
+    with different rounding), else bisects. A Newton step back onto an end of the bracket
+    that was already evaluated bisects too: at the noise floor of `f` Newton may
+    alternate between two points whose distance exceeds the step tolerance, and under
+    `vmap` one such member would keep every member iterating to `max_iter`. From a
+    start where `f ≥ 0` and `f` convex (or `f ≤ 0` and `f` concave) the Newton steps are
+    monotone and never bisect.
     With `has_slope`, `f(x)` returns `(f(x), f'(x))`; otherwise `f'` is `jax.jvp` of `f`. Stops when `f(x) = 0`, when a
     step or the bracket is below `4 eps max(|x|, x_scale)`, or after `max_iter` steps.
     """
     x0 = jnp.asarray(x0)
     eps = jnp.finfo(x0.dtype).eps
     lo, hi = jnp.full_like(x0, lo), jnp.full_like(x0, hi)
+    lo0, hi0 = lo, hi
 
     def evaluate(x):
         return f(x) if has_slope else jax.jvp(f, (x,), (jnp.ones_like(x),))
@@ -261,7 +266,9 @@ def bracketed_newton(f: Callable, x0, lo, hi, max_iter, *, x_scale: float = 0.0,
         newton = x - step
         slack = 4 * tol(x)
         inside = jnp.isfinite(newton) & (newton >= lo - slack) & (newton <= hi + slack)
-        x_new = jnp.where(inside, jnp.clip(newton, lo, hi), 0.5 * (lo + hi))
+        trial = jnp.clip(newton, lo, hi)
+        revisit = ((trial == lo) & (lo != lo0)) | ((trial == hi) & (hi != hi0))  # f known there: no progress
+        x_new = jnp.where(inside & ~revisit, trial, 0.5 * (lo + hi))
         fx_new, dfx_new = evaluate(x_new)
         return x_new, fx_new, dfx_new, lo, hi, x_new - x, k + 1
 
