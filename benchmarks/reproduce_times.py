@@ -61,7 +61,7 @@ def _load(avg) -> str:
 def markdown(result: dict) -> str:
     meta = result["meta"]
     lines = [
-        f"# Run time of `jdrkf reproduce` at {'--quick' if meta['quick'] else 'the defaults'} ({meta['platform']})",
+        f"# Run time of jdrkf reproduce at {'--quick' if meta['quick'] else 'the defaults'} ({meta['platform']})",
         "",
         f"- Machine: {meta['cpu']}, {meta['cores']} cores; load average at start {_load(meta['loadavg_start'])}, at end "
         f"{_load(meta['loadavg_end'])}; {meta['date']}; jax {meta['versions'].get('jax')}; commit {meta['git']['commit']}"

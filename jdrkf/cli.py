@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nruns: default Monte Carlo runs; quick: the runs of --quick (which also shrinks horizons and grids); "
               "full: the runs of --full, the paper's scale where the default is cut to fit minutes (—: the default is "
               f"the paper's scale); time: CPU time of the whole command on a {experiments.MEASURED_ON}, roughly an upper "
-              "bound of its wall time on an otherwise idle machine (est.: scaled up from a tenth of the runs; —: not measured).")
+              "bound of its wall time on an otherwise idle machine (est.: scaled up from smaller runs; —: not measured).")
         return 0
 
     from .experiments._tune import load_params

@@ -287,23 +287,25 @@ class Timing:
     full_estimated: bool = False  # `full_s` scaled up as `default_s` is when `estimated`
 
 
-# Machine the TIMINGS were measured on, one experiment at a time (float64, jax 0.10).
-MEASURED_ON = "2-core Xeon"
+# Machine the default TIMINGS were measured on, one experiment at a time (float64, jax 0.10;
+# benchmarks/results/reproduce_times_cpu.md). Quick times of experiments unchanged since were
+# measured earlier on a 2-core Xeon; full times are estimates scaled from smaller runs.
+MEASURED_ON = "2-core AMD EPYC"
 TIMINGS: dict[str, Timing] = {
-    "chen-fusion": Timing(6050.0, 134.6, estimated=True),
-    "jang-convergence": Timing(22.2, 24.2),
-    "jang-lqr": Timing(2014.0, 64.5, estimated=True),
-    "li-convergence": Timing(15.3, 12.4),
-    "li-identity": Timing(19.8, 16.2),
-    "li-torsion": Timing(417.0, 46.6, estimated=True),
-    "wang-growth": Timing(2220.0, 53.5, estimated=True),
-    "wang-methods": Timing(12552.0, 46.0, estimated=True),
-    "wang-tracking": Timing(45.6, 35.7),
-    "wang-ye-breakdown": Timing(29.6, 16.4),
-    "wang-ye-sensitivity": Timing(18.1, 11.1),
-    "wang-ye-table1": Timing(19.6, 20.8),
-    "wang-ye-table2": Timing(19.6, 19.7),
-    "wang-ye-table3": Timing(19.7, 20.1),
+    "chen-fusion": Timing(258.4, 44.1, full_s=630.0, full_estimated=True),
+    "jang-convergence": Timing(26.9, 24.2),
+    "jang-lqr": Timing(173.9, 62.0, full_s=540.0, full_estimated=True),
+    "li-convergence": Timing(13.9, 12.4),
+    "li-identity": Timing(21.8, 16.2),
+    "li-torsion": Timing(68.0, 42.0),
+    "wang-growth": Timing(122.4, 17.5),
+    "wang-methods": Timing(156.4, 17.4, full_s=1640.0, full_estimated=True),
+    "wang-tracking": Timing(52.1, 35.7),
+    "wang-ye-breakdown": Timing(25.9, 16.4),
+    "wang-ye-sensitivity": Timing(16.0, 11.1),
+    "wang-ye-table1": Timing(22.4, 20.8),
+    "wang-ye-table2": Timing(24.7, 19.7),
+    "wang-ye-table3": Timing(24.4, 20.1),
 }
 
 
