@@ -267,9 +267,12 @@ def test_full_mode_restores_the_paper_scale(capsys, monkeypatch):
     assert "'plain' has no separate paper-scale setting" in capsys.readouterr().err
     with pytest.raises(ValueError, match="exclude each other"):
         exp.options(quick=True, full=True)
-    for e in jdrkf.experiments.EXPERIMENTS.values():  # a paper scale is at least the default
+    import inspect
+
+    for e in jdrkf.experiments.EXPERIMENTS.values():  # a paper scale is at least the default, in options of the run
         if e.full is not None:
             assert e.full["runs"] >= e.default_runs, e.name
+            assert set(e.full) - {"runs"} <= set(inspect.signature(e.run).parameters), e.name
 
 
 def test_console_script_entry_point():
