@@ -215,3 +215,15 @@ def test_gauss_jordan_solve_jit_vmap_grad(rng):
     fd_b = (ref(a, b + eps * db) - ref(a, b - eps * db)) / (2 * eps)
     np.testing.assert_allclose(np.sum(np.asarray(ga) * da), fd_a, rtol=1e-6)
     np.testing.assert_allclose(np.sum(np.asarray(gb) * db), fd_b, rtol=1e-6)
+
+
+@pytest.mark.parametrize("k", [1, 2, 6, 7])
+def test_matmul_equals_at_for_vectors_and_matrices(rng, k):
+    # k ≤ UNROLL_MAX: sums of column scalings; k = 7: `@`
+    a, b, x = rng.normal(size=(3, k)), rng.normal(size=(k, 4)), rng.normal(size=k)
+    for left, right in [(a, b), (a, x), (x, b), (x, x)]:
+        np.testing.assert_allclose(linalg.matmul(left, right), left @ right, rtol=1e-13, atol=1e-14)
+    # under vmap the batched operand keeps its meaning
+    xs = rng.normal(size=(5, k))
+    np.testing.assert_allclose(jax.vmap(linalg.matmul, in_axes=(None, 0))(a, xs), xs @ a.T, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(linalg.matmul(np.zeros((2, 0)), np.zeros(0)), np.zeros(2))

@@ -64,7 +64,7 @@ def test_grid_search_finds_the_minimum_of_its_grid(objective):
     res = tuning.grid_search(mkf, objective, where=lambda f: (f.state_set.theta2, f.noise_set.theta2), grid=grid)
     direct = [float(objective(wang_ye.mkf(g))) for g in grid]
     np.testing.assert_allclose(res.losses, direct, rtol=1e-10)
-    assert res.loss == min(direct)
+    assert res.loss == min(res.losses) and res.loss == pytest.approx(min(direct), rel=1e-12)
     assert float(res.filter.state_set.theta2) == grid[int(np.argmin(direct))]
 
 

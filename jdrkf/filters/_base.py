@@ -230,6 +230,12 @@ class AbstractFilter(eqx.Module):
         with jax.default_matmul_precision("highest"):
             return self._run(model, prior, ys, key, inputs, observed)
 
+    def _scanned(self, model, state0):
+        """`(carry0, step_fn)` that `__call__` scans: by default `init`'s state and `step`.
+        A filter may carry another representation of the same state (with a `step_fn` of
+        `step`'s signature that reports the same `StepOutput`)."""
+        return state0, self.step
+
     def _run(self, model, prior, ys, key, inputs, observed) -> FilterResult:
         num_steps = ys.shape[0]
         if self.stochastic_init:
@@ -239,6 +245,7 @@ class AbstractFilter(eqx.Module):
             state0 = self.init(model, prior, k_init)
         else:
             state0 = self.init(model, prior)
+        carry_state0, step = self._scanned(model, state0)
         keys = None if key is None else jax.random.split(key, num_steps)
         stacked = set(self.outputs) - {"marginal_loglik"}
         loglik0 = jnp.zeros((), prior.mean.dtype) if "marginal_loglik" in self.outputs else None
@@ -249,7 +256,7 @@ class AbstractFilter(eqx.Module):
         def body(carry, xs):
             state, result, last_mean, loglik = carry
             t, y, u, k, o = xs
-            state, out = self.step(model, state, y, t, u, k, observed=o)
+            state, out = step(model, state, y, t, u, k, observed=o)
             result = RESULTS.where(result == RESULTS.successful, out.result, result)
             fields = {
                 "filtered_means": out.filtered.mean,
@@ -264,7 +271,7 @@ class AbstractFilter(eqx.Module):
             return (state, result, last_mean, loglik), {name: fields[name] for name in stacked}
 
         xs = (jnp.arange(num_steps), ys, inputs, keys, observed)
-        carry0 = (state0, RESULTS.successful, mean0, loglik0)
+        carry0 = (carry_state0, RESULTS.successful, mean0, loglik0)
         (_, result, last_mean, loglik), outs = lax.scan(body, carry0, xs)
         if last_mean is None:
             last_mean = outs["filtered_means"][-1] if num_steps else prior.mean

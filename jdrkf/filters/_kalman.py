@@ -14,7 +14,7 @@ from .. import linalg
 from .._gaussian import Gaussian, log_density
 from .._models import LinearModel
 from .._validation import is_concrete, psd_rtol
-from . import _sqrt
+from . import _entrywise, _sqrt
 from ._base import RESULTS, AbstractFilter, StepOutput
 from ._steps import constant_gain_step, measurement, step_result
 
@@ -23,10 +23,11 @@ def predict(model: LinearModel, belief: Gaussian, t: Int[ArrayLike, ""], u: Floa
     """Time update `x_{k-1} → x_k` with the step-`t` model (`t = k − 1`):
     `m⁻ = F m + B u + G μ_w`, `P⁻ = F P Fᵀ + G Q Gᵀ`."""
     mdl = model.at(t)
-    mean = mdl.F @ belief.mean + mdl.G @ mdl.process_mean
+    mm = linalg.matmul
+    mean = mm(mdl.F, belief.mean) + mm(mdl.G, mdl.process_mean)
     if mdl.B is not None:
-        mean = mean + mdl.B @ u
-    cov = linalg.symmetrize(mdl.F @ belief.cov @ mdl.F.T + mdl.G @ mdl.Q @ mdl.G.T)
+        mean = mean + mm(mdl.B, u)
+    cov = linalg.symmetrize(mm(mm(mdl.F, belief.cov), mdl.F.T) + mm(mm(mdl.G, mdl.Q), mdl.G.T))
     return Gaussian(mean, cov)
 
 
@@ -46,14 +47,16 @@ def update(
     is `True` when the innovation covariance was not positive definite.
     """
     observed, h, r, resid = measurement(model, y, t, observed)
-    innov = resid - h @ predicted.mean
-    s = linalg.symmetrize(h @ predicted.cov @ h.T + r)
+    mm = linalg.matmul
+    innov = resid - mm(h, predicted.mean)
+    hp = mm(h, predicted.cov)
+    s = linalg.symmetrize(mm(hp, h.T) + r)
     chol_s = linalg.cholesky(s)
     failed = ~jnp.all(jnp.isfinite(chol_s))
-    gain = linalg.cho_solve(chol_s, h @ predicted.cov).T
-    mean = predicted.mean + gain @ innov
-    a = jnp.eye(predicted.mean.shape[0], dtype=s.dtype) - gain @ h
-    cov = linalg.symmetrize(a @ predicted.cov @ a.T + gain @ r @ gain.T)
+    gain = linalg.cho_solve(chol_s, hp).T
+    mean = predicted.mean + mm(gain, innov)
+    a = jnp.eye(predicted.mean.shape[0], dtype=s.dtype) - mm(gain, h)
+    cov = linalg.symmetrize(mm(mm(a, predicted.cov), a.T) + mm(mm(gain, r), gain.T))
     loglik = log_density(chol_s, innov, jnp.sum(observed.astype(innov.dtype)))
     return Gaussian(mean, cov), loglik, failed
 
@@ -101,7 +104,10 @@ class KalmanFilter(AbstractFilter):
     - `outputs`: the `FilterResult` fields to fill (see `jdrkf.AbstractFilter`).
 
     Under `jax.vmap` over runs the covariance recursion does not depend on the data
-    and is computed once for all runs; missing data enter through `observed`.
+    and is computed once for all runs; missing data enter through `observed`. Small
+    states (`n, m ≤ linalg.UNROLL_MAX`, without `square_root`) carry the entries of the
+    mean and covariance through the scan and run the step entry by entry, which XLA
+    fuses into a few loops over the runs under `vmap` (the same arithmetic).
 
     **Example:**
 
@@ -126,10 +132,27 @@ class KalmanFilter(AbstractFilter):
             pred, filt = Gaussian(mean_pred, _sqrt.outer(chol_pred)), Gaussian(mean, _sqrt.outer(chol))
             info = {"predicted_chol_cov": chol_pred, "filtered_chol_cov": chol}
             return (mean, chol), StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=info, result=step_result(failed, filt))
+        if self._entrywise(model):
+            _, out = _entrywise.kalman_step(model, _entrywise.gaussian(state), y, t, u, observed)
+            return out.filtered, out
         pred = predict(model, state, t, u)
         filt, loglik, failed = update(model, pred, y, t, observed=observed)
         out = StepOutput(predicted=pred, filtered=filt, loglik=loglik, info=None, result=step_result(failed, filt))
         return filt, out
+
+    def _entrywise(self, model: LinearModel) -> bool:
+        return not self.square_root and _entrywise.applies(model.state_dim, model.obs_dim)
+
+    def _scanned(self, model, state0):
+        # Small states: the scan carries the entries of the mean and covariance (see
+        # `_entrywise`), which under `vmap` are contiguous arrays over the runs.
+        if not self._entrywise(model):
+            return super()._scanned(model, state0)
+
+        def step(model, state, y, t, u=None, key=None, observed=None):
+            return _entrywise.kalman_step(model, state, y, t, u, observed)
+
+        return _entrywise.gaussian(state0), step
 
 
 class SteadyStateGain(eqx.Module):

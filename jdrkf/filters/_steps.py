@@ -62,10 +62,11 @@ def constant_gain_step(model, state, y, u, noise_cov, observed, converged=True):
     """One step with the constant gain of `state = (mean, SteadyStateGain, chol(S))`;
     `noise_cov` is the measurement covariance behind `S` (default `R`; used for missing data)."""
     mean, ss, chol_s = state
-    mean_pred = model.F @ mean + model.G @ model.process_mean
+    mm = linalg.matmul
+    mean_pred = mm(model.F, mean) + mm(model.G, model.process_mean)
     if model.B is not None:
-        mean_pred = mean_pred + model.B @ u
-    innov = y - model.noise_mean - model.H @ mean_pred
+        mean_pred = mean_pred + mm(model.B, u)
+    innov = y - model.noise_mean - mm(model.H, mean_pred)
     if observed is not None:
         # Drop missing components; the log-likelihood is the marginal of N(0, S) on the rest.
         _, h, r, _ = masked_measurement(model, y, observed, noise_cov)
@@ -74,7 +75,7 @@ def constant_gain_step(model, state, y, u, noise_cov, observed, converged=True):
         num_observed = jnp.sum(observed.astype(innov.dtype))
     else:
         chol_obs, num_observed = chol_s, y.shape[0]
-    mean_filt = mean_pred + ss.gain @ innov
+    mean_filt = mean_pred + mm(ss.gain, innov)
     loglik = log_density(chol_obs, innov, num_observed)
     pred = Gaussian(mean_pred, ss.predicted_cov)
     filt = Gaussian(mean_filt, ss.filtered_cov)
