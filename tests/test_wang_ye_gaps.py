@@ -1,4 +1,4 @@
-"""The two Wang & Ye (2022) Tables I–III gaps (see `benchmarks/wang_ye_gaps.py`).
+"""The Wang & Ye (2022) Tables I–III gaps and the breakdown τ-KF gap (see `benchmarks/wang_ye_gaps.py`).
 
 An independent NumPy oracle of the authors' MATLAB filters (`KF.m`, `Huber.m`, `MKF.m`,
 `WKF.m` + `FrankWolfe.m`, `GenerateData.m`; it lives in the benchmark script and does not
@@ -10,6 +10,10 @@ use jdrkf) is checked against jdrkf on identical data, and then used to test the
   `Results.mat` fits the block-diagonal version.
 - Gap B (Table I MKF): under the paper's stated settings the authors' MKF (= ours) is behind
   the WKF on average; the paper's single-episode 9.91 is an ordinary draw of its RMSE.
+- Gap C (breakdown τ-KF): the authors ran Zorzi's τ-KF as a one-step predictor fed y_{k−1},
+  with covariances passed where unit-variance noise factors belong (process covariance
+  (GQGᵀ)²); the oracle of that filter (checked against a Kalman predictor and jdrkf's
+  `TauKF`) reaches the paper's breakdown numbers, ours (filtered, correct noise) does not.
 
 Expected values are the paper's and the authors' stored numbers; the statistical tolerances
 are stated where used (per-episode standard deviations measured with the benchmark).
@@ -26,6 +30,7 @@ import numpy as np
 import pytest
 
 from jdrkf import KalmanFilter, WassersteinKF
+from jdrkf.filters import TauKF
 from jdrkf.experiments import wang_ye as wy
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -178,3 +183,112 @@ def test_table1_mkf_gap_is_episode_noise_with_the_authors_settings(gains):
     assert lo > 1.0
     _, (lo, hi) = orc.mean_ci(orc.rmse(x, orc.oracle_mkf(y, np.inf, 0.0, 1.02)) / wkf)
     assert lo <= 9.91 / 9.95 <= hi
+
+
+# ------------------------------------------------------------------ Gap C: the breakdown τ-KF
+#
+# The oracle's τ-KF (Zorzi's "delayed" predictor, τ = 0) is checked against a textbook Kalman
+# predictor written here and against jdrkf's `TauKF`; then the authors' variant (the predictor
+# fed y_{k−1}, covariances passed as noise factors) is checked against the paper's numbers.
+
+
+def _kalman_predictor(y, p1):
+    """One-step Kalman predictor x̂_{k+1|k} from x̂_{1|0} = 0, P_{1|0} = p1 (textbook Riccati:
+    K = F P Hᵀ S⁻¹, P ← F P Fᵀ + Q − K S Kᵀ); entry t is the prediction made from y_1..y_{t+1}."""
+    f, h, q, r = (np.asarray(m) for m in (wy.nominal_model().F, wy.nominal_model().H, wy.nominal_model().Q, wy.nominal_model().R))
+    xh, p, out = np.zeros((y.shape[0], 2)), p1, np.zeros((*y.shape, 2))
+    for t in range(y.shape[1]):
+        s = h @ p @ h.T + r
+        k = f @ p @ h.T / s
+        xh = xh @ f.T + (y[:, t] - xh @ h[0])[:, None] * k[:, 0][None, :]
+        p = f @ p @ f.T + q - k @ s @ k.T
+        out[:, t] = xh
+    return out
+
+
+def _tau_episodes(key, runs, alpha, prob, num_steps):
+    traj = wy.scenario(jax.random.key(key), runs, alpha, True, num_steps, prob=prob, magnitude=50.0)
+    return traj, np.asarray(traj.states), np.asarray(traj.observations)[..., 0]
+
+
+def test_tau_oracle_with_zero_tolerance_is_the_kalman_predictor():
+    """c = 0 (and c → 0) with the correct noise factors B = [chol(Q), 0], D = [0, chol(R)]: the
+    Kalman predictor to round-off (c = 1e-14 moves V by ~1e-7 relative); c = 1.5e-4 does differ."""
+    _, _, y = _tau_episodes(21, 3, 1.0, 0.2, 300)
+    f, q = orc.F, orc.Q
+    p1 = f @ f.T + q
+    ref = _kalman_predictor(y, p1)
+    b, d = orc.tau_factors("sqrt")
+    np.testing.assert_allclose(b[:, :2] @ b[:, :2].T, np.asarray(wy.nominal_model().Q), rtol=1e-14)
+    for c, tol in ((0.0, 1e-10), (1e-14, 1e-5)):
+        gains, thetas, _ = orc.oracle_tau_gains(300, b, d, c, v0=p1)
+        assert np.all(thetas >= 0) and (c > 0) == np.all(thetas > 0)
+        np.testing.assert_allclose(orc.oracle_tau_predict(gains, y), ref, rtol=tol, atol=tol * np.abs(ref).max())
+    gains, _, _ = orc.oracle_tau_gains(300, b, d, 1.5e-4, v0=p1)
+    assert np.max(np.abs(orc.oracle_tau_predict(gains, y) - ref)) > 1e-2 * np.abs(ref).max()
+
+
+@pytest.mark.parametrize("c", [1.5e-4, 1e-2])
+def test_tau_oracle_matches_jdrkf_taukf_predicted_means(c):
+    """With the correct factors the oracle's predictions are jdrkf's `TauKF(0, c)` predicted means
+    x̂_{k|k−1} (jdrkf robustifies F P₀ Fᵀ + Q at its first step; the oracle is started there), and
+    its θ_k are jdrkf's: the same recursion in float64 (2e-12 observed on estimates of ~100)."""
+    traj, _, y = _tau_episodes(22, 2, 1.0, 0.3, 200)
+    res = jax.vmap(lambda yy: TauKF(0.0, c, outputs="all")(wy.nominal_model(), wy.prior(), yy))(traj.observations)
+    pm, th_j = np.asarray(res.predicted_means), np.asarray(res.info["theta"])
+    b, d = orc.tau_factors("sqrt")
+    th1, v1 = orc.kl_robustify(orc.F @ orc.F.T + orc.Q, c)
+    gains, thetas, _ = orc.oracle_tau_gains(200, b, d, c, v0=v1)
+    np.testing.assert_allclose(pm[:, 0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(orc.oracle_tau_predict(gains, y)[:, :-1], pm[:, 1:], rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(np.concatenate([[th1], thetas[:-1]]), th_j[0], rtol=1e-10)
+    # θ solves the KL budget: Σ φ₀(θ p_i) = c, with φ₀(s) = s/(1 − s) + log(1 − s)
+    p = np.linalg.eigvalsh(np.asarray(res.info["nominal_predicted_cov"])[0, 5])
+    s = th_j[0, 5] * p
+    assert np.sum(s / (1 - s) + np.log(1 - s)) == pytest.approx(c, rel=1e-9)
+
+
+def test_authors_factors_square_the_process_covariance_and_pass_more_outliers():
+    """The authors' B = [GQGᵀ, 0], D = [0, DRDᵀ]: Zorzi's reduction gives the process covariance
+    B Bᵀ = (GQGᵀ)² (≈ 3.84 I against 1.96 I), R² = R = 1 and A = F. The larger assumed process noise
+    raises the gain, so with 30% ±50 outliers (T = 2000) the authors' variant is worse than the
+    correct predictor fed the same y_{k−1}: paired per-episode difference, CI above 0."""
+    m = wy.nominal_model()
+    q, r, f = np.asarray(m.Q), np.asarray(m.R), np.asarray(m.F)
+    b_cov, d_cov = orc.tau_factors("covariance")
+    a_eff, q_eff, r_eff = orc.tau_transform(f, b_cov, np.asarray(m.H), d_cov)
+    np.testing.assert_allclose(q_eff, q @ q, rtol=1e-14)
+    assert np.diag(q_eff) == pytest.approx([3.845, 3.844], abs=1e-3)
+    np.testing.assert_allclose(r_eff, r @ r, rtol=1e-14)
+    np.testing.assert_allclose(a_eff, f, rtol=1e-14)
+    b_ok, d_ok = orc.tau_factors("sqrt")
+    _, q_ok, r_ok = orc.tau_transform(f, b_ok, np.asarray(m.H), d_ok)
+    np.testing.assert_allclose(q_ok, q, rtol=1e-14)
+    np.testing.assert_allclose(r_ok, r, rtol=1e-14)
+
+    _, x, y = _tau_episodes(23, 8, 0.0, 0.3, 2000)
+    y_delay = np.concatenate([np.zeros((y.shape[0], 1)), y[:, :-1]], axis=1)
+    ok, auth = (orc.oracle_tau_gains(2000, *orc.tau_factors(form))[0] for form in ("sqrt", "covariance"))
+    assert auth[-1, 0, 0] > ok[-1, 0, 0]
+    diff = orc.rmse(x, orc.oracle_tau_predict(auth, y_delay)) - orc.rmse(x, orc.oracle_tau_predict(ok, y_delay))
+    _, (lo, _) = orc.mean_ci(diff)
+    assert lo > 0
+
+
+def test_authors_variant_reaches_the_papers_breakdown_tau_kf_and_ours_does_not():
+    """The paper's breakdown τ-KF at ε_real = 0.5 (±50 outliers, T = 10⁴, one episode each): 31.12
+    (α = 0) and 31.35 (α = 1). The per-episode sd of the RMSE there is ~0.2 (measured: benchmark
+    section 4), so the mean of 6 episodes of a setting that fits lies within 0.5 of the paper's
+    number (2.5 sd of one episode); ours (jdrkf `TauKF`, filtered, correct noise) is more than 1
+    below it (5 sd)."""
+    n = 10_000
+    g = orc.oracle_tau_gains(1500, *orc.tau_factors("covariance"))[0]  # converged to 1e-13 by step 1400
+    g = np.concatenate([g, np.repeat(g[-1:], n - g.shape[0], 0)])
+    for alpha, paper in ((0.0, 31.12), (1.0, 31.35)):
+        traj, x, y = _tau_episodes(24, 6, alpha, 0.5, n)
+        y0 = np.asarray(traj.initial_states) @ orc.H[0] + np.random.default_rng(int(alpha)).standard_normal(6)
+        authors = orc.rmse(x, orc.oracle_tau_predict(g, np.concatenate([y0[:, None], y[:, :-1]], axis=1)))
+        res = jax.vmap(lambda yy: TauKF(0.0, wy.TAU_C)(wy.nominal_model(), wy.prior(), yy))(traj.observations)
+        ours = orc.rmse(x, np.asarray(res.filtered_means))
+        assert abs(authors.mean() - paper) < 0.5, (alpha, authors.mean())
+        assert paper - ours.mean() > 1.0, (alpha, ours.mean())

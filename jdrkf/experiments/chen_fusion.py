@@ -7,8 +7,9 @@ constant-acceleration target, eq. (34): `x_{t+1} = F x_t + G w_t`, `w ~ N(0, 1)`
 The sensor noises are correlated with each other and with the state through the
 previous process noise; every filter's nominal model has `v_t^i = η_t^i` (independent
 sensors). 600 steps, `x_0 = 0`, `x̂_0 = 0`. Filters: covariance intersection over
-local posteriors from a common fused prior (`CI`, determinant criterion as MATLAB's
-`fusecovint`), the KF on sensor 1 (`KF`), the marginal KL and moment DR filters
+local posteriors from a common fused prior (`CI`, weights minimizing `log det P_CI`;
+the authors' MATLAB `fusecovint` sets `ω_i ∝ 1 / det P_i` instead, see
+`benchmarks/chen_gaps.py`), the KF on sensor 1 (`KF`), the marginal KL and moment DR filters
 (`KL-MDRKF`, `MC-MDRKF`), and the centralized KF (`CKF`, computed but not shown in
 the paper).
 

@@ -49,7 +49,8 @@ class CovarianceIntersection(AbstractFilter):
     Each step predicts from the previous CI estimate (the common fused prior), lets every
     sensor `i` update it with its own `y^i` (local KF, `R_i`), and fuses the `p` local
     posteriors by CI (`covariance_intersection`): `ω` minimizes `log det P_CI`
-    (`criterion="det"`, MATLAB `fusecovint`'s default) or `Tr P_CI` (`"trace"`). The fused
+    (`criterion="det"`) or `Tr P_CI` (`"trace"`). (MATLAB's `fusecovint`, which Chen et
+    al.'s code calls, names these criteria but sets `ω_i ∝ 1 / det P_i` without minimizing.) The fused
     estimate is the next prior. The covariance path does not depend on the data.
 
     `ω` is found by projected gradient (see `ci_weights`); it is not differentiated.

@@ -64,7 +64,7 @@ def ci_weights(
     max_iter: int = 200,
 ) -> CIWeights:
     """Covariance-intersection weights (`docs/math/marginal.md`): `ω` in the simplex minimizing
-    `log det` (`"det"`, MATLAB `fusecovint`'s default) or `Tr` of `(Σ ω_i Y_i)⁻¹` for the
+    `log det` (`"det"`) or `Tr` (`"trace"`) of `(Σ ω_i Y_i)⁻¹` for the
     information matrices `Y_i = P_i⁻¹` (both objectives are convex in `ω`).
 
     Projected gradient with backtracking (step halved until the quadratic upper bound holds,
