@@ -4,7 +4,8 @@
 Wang & Ye's (2022) system (n = 2 states, m = 1 observation), B independent runs of length T
 simulated once with NumPy (fixed seed) and fed to every implementation, in float32 and
 float64 (each dtype in its own child process). Every row is timed in the same process:
-compile time = first call − median call; run time = median of `--repeats` calls
+compile time = first call − median call; run time = median of `--repeats` calls, made in
+interleaved rounds (each row once per round, so that a drifting load hits every row alike)
 (`jax.block_until_ready`); steps/s = B·T / run time.
 
 Goal rows (issue "Fast by default"), each a ratio of two rows of the same run:
@@ -270,20 +271,24 @@ def run_child(args) -> dict:
 
     minimal = jax.jit(jax.vmap(minimal_kf))
 
-    def time_call(fn, *fargs, keep=lambda out: out):
-        """First call (compile + run) and `args.repeats` timed calls. Returns `keep(output)`
-        of the first call as NumPy (the full output is dropped before the timed calls)."""
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn(*fargs))
-        first = time.perf_counter() - t0
+    def first_call(impl, kind, B, fn, *fargs, keep=lambda out: out):
+        """First call (compile + run) of a row. Returns `(keep(output) as NumPy, first-call
+        seconds)`, or `None` after recording a row that ran out of device memory."""
+        try:
+            t0 = time.perf_counter()
+            out = jax.block_until_ready(fn(*fargs))
+            first = time.perf_counter() - t0
+        except Exception as e:  # noqa: BLE001 (XLA's error class differs between jax versions)
+            if "RESOURCE_EXHAUSTED" not in str(e) and "out of memory" not in str(e).lower():
+                raise
+            log(f"[{dtype}] B={B} {impl}: out of device memory")
+            rows.append({"impl": impl, "kind": kind, "dtype": dtype, "B": B, "T": args.T, "out_of_memory": True,
+                         "first_call_s": None, "compile_s": None, "run_s": None, "run_min_s": None,
+                         "run_times_s": [], "steps_per_s": None})
+            return None
         kept = jax.tree.map(np.asarray, keep(out))
         del out
-        times = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(*fargs))
-            times.append(time.perf_counter() - t0)
-        return kept, first, times
+        return kept, first
 
     rows, checks = [], []
     tol = 1e-8 if dtype == "float64" else 1e-3
@@ -296,19 +301,25 @@ def run_child(args) -> dict:
             "run_times_s": times, "steps_per_s": B * args.T / med,
         })
 
-    def timed_row(impl, kind, B, fn, *fargs, keep=lambda out: out):
-        """`time_call` + `record`; a call that runs out of device memory is recorded as such."""
-        try:
-            kept, first, times = time_call(fn, *fargs, keep=keep)
-        except Exception as e:  # noqa: BLE001 (XLA's error class differs between jax versions)
-            if "RESOURCE_EXHAUSTED" not in str(e) and "out of memory" not in str(e).lower():
-                raise
-            log(f"[{dtype}] B={B} {impl}: out of device memory")
-            rows.append({"impl": impl, "kind": kind, "dtype": dtype, "B": B, "T": args.T, "out_of_memory": True,
-                         "first_call_s": None, "compile_s": None, "run_s": None, "run_min_s": None,
-                         "run_times_s": [], "steps_per_s": None})
-            return None
-        record(impl, kind, B, first, times)
+    def timed_rows(B, specs):
+        """Every row's first call, then `args.repeats` rounds in which each row is called
+        once, in order: slow drifts of a shared machine's load then hit every row alike.
+        `specs`: `(impl, kind, fn, fargs, keep, compiled)`. Returns `{impl: kept output}`."""
+        kept, firsts = {}, {}
+        for impl, kind, fn, fargs, keep, compiled in specs:
+            got = first_call(impl, kind, B, fn, *fargs, keep=keep)
+            if got is not None:
+                kept[impl], firsts[impl] = got
+        times = {impl: [] for impl in firsts}
+        for _ in range(args.repeats):
+            for impl, _kind, fn, fargs, _keep, _compiled in specs:
+                if impl in firsts:
+                    t0 = time.perf_counter()
+                    jax.block_until_ready(fn(*fargs))
+                    times[impl].append(time.perf_counter() - t0)
+        for impl, kind, _fn, _fargs, _keep, compiled in specs:
+            if impl in firsts:
+                record(impl, kind, B, firsts[impl], times[impl], compiled)
         return kept
 
     def check(B, what, pairs):
@@ -334,31 +345,32 @@ def run_child(args) -> dict:
     for B in args.batch_sizes:
         ys = ys_all if B == B_max else ys_all[:B]
         log(f"[{dtype}] B={B} T={args.T}")
-        m_tour = timed_row("jdrkf README tour", "goal", B, tour, model, prior, ys, keep=means)
-        m_dyn = timed_row("dynamax", "peer", B, dyn, params, ys, keep=means)
-        m_min = timed_row("minimal scan+vmap KF", "peer", B, minimal, ys, keep=head)
-        if m_tour is not None and m_dyn is not None:
-            check(B, "README tour vs dynamax", {"means": (m_tour, m_dyn)})
-        if m_tour is not None and m_min is not None:
-            check(B, "README tour vs minimal KF", {"means": (m_tour, m_min)})
-        timed_row("jdrkf, default outputs (dynamax's set)", "extra", B, default_outputs, model, prior, ys, keep=means)
-        timed_row('jdrkf, outputs="all"', "extra", B, all_outputs, model, prior, ys, keep=means)
+        specs = [
+            ("jdrkf README tour", "goal", tour, (model, prior, ys), means, True),
+            ("dynamax", "peer", dyn, (params, ys), means, True),
+            ("minimal scan+vmap KF", "peer", minimal, (ys,), head, True),
+            ("jdrkf, default outputs (dynamax's set)", "extra", default_outputs, (model, prior, ys), means, True),
+            ('jdrkf, outputs="all"', "extra", all_outputs, (model, prior, ys), means, True),
+        ]
         if B <= args.numpy_max_runs:
             ys_np, obs_np = np.asarray(ys), np.ascontiguousarray(observed_all[:B])
-            r_run = timed_row("jdrkf per-run (5% missing)", "goal", B, per_run, ys, jnp.asarray(obs_np),
-                              keep=lambda out: (out.filtered_means, out.filtered_covariances, out.marginal_loglik))
-            t0 = time.perf_counter()
-            r_np = numpy_kf(s["F"], s["H"], s["Q"], s["R"], s["m0"], s["P0"], ys_np, obs_np)
-            first = time.perf_counter() - t0
-            times = []
-            for _ in range(args.numpy_repeats):
-                t0 = time.perf_counter()
-                numpy_kf(s["F"], s["H"], s["Q"], s["R"], s["m0"], s["P0"], ys_np, obs_np)
-                times.append(time.perf_counter() - t0)
-            record("numpy per-run (5% missing)", "peer", B, first, times, compiled=False)
+            specs += [
+                ("jdrkf per-run (5% missing)", "goal", per_run, (ys, jnp.asarray(obs_np)),
+                 lambda out: (out.filtered_means, out.filtered_covariances, out.marginal_loglik), True),
+                ("numpy per-run (5% missing)", "peer",
+                 lambda y, o: numpy_kf(s["F"], s["H"], s["Q"], s["R"], s["m0"], s["P0"], y, o), (ys_np, obs_np),
+                 lambda out: out, False),
+            ]
+        kept = timed_rows(B, specs)
+        if "jdrkf README tour" in kept and "dynamax" in kept:
+            check(B, "README tour vs dynamax", {"means": (kept["jdrkf README tour"], kept["dynamax"])})
+        if "jdrkf README tour" in kept and "minimal scan+vmap KF" in kept:
+            check(B, "README tour vs minimal KF", {"means": (kept["jdrkf README tour"], kept["minimal scan+vmap KF"])})
+        r_run, r_np = kept.get("jdrkf per-run (5% missing)"), kept.get("numpy per-run (5% missing)")
+        if r_run is not None and r_np is not None:
             check(B, "jdrkf per-run vs numpy", {"means": (r_run[0], r_np[0]), "covs": (r_run[1], r_np[1]),
                                                 "loglik": (r_run[2], r_np[2])})
-            del r_run, r_np
+        del kept, r_run, r_np
         del ys
     del ys_all
 
@@ -504,7 +516,7 @@ def build_markdown(result) -> str:
         f"# Kalman-filter throughput ({meta['platform_tag']}): jdrkf vs dynamax vs a minimal JAX KF vs NumPy",
         "",
         f"- Wang & Ye's (2022) system (n=2, m=1), T={cfg['T']}, data seed {cfg['seed']} (simulated with "
-        f"{'jax.random on the device' if cfg.get('simulate') == 'device' else 'NumPy'}), {cfg['repeats']} timed calls per cell "
+        f"{'jax.random on the device' if cfg.get('simulate') == 'device' else 'NumPy'}), {cfg['repeats']} interleaved rounds of timed calls per cell "
         "(median; best in the goal table), compile = first call − median.",
         f"- Machine: {meta['cpu_model']}, {meta['cpu_count']} cores; JAX device: {meta['device']}; "
         f"jax {meta['versions']['jax']}, dynamax {meta['versions']['dynamax']}, numpy {meta['versions']['numpy']}; "
@@ -576,7 +588,7 @@ def run_parent(args) -> int:
             cmd = [sys.executable, os.path.abspath(__file__), "--child", "--dtype", dtype, "--child-out", path,
                    "--T", str(args.T), "--repeats", str(args.repeats), "--seed", str(args.seed),
                    "--platform", args.platform, "--simulate", args.simulate, "--numpy-max-runs", str(args.numpy_max_runs),
-                   "--numpy-repeats", str(args.numpy_repeats), "--batch-sizes", *map(str, args.batch_sizes),
+                   "--batch-sizes", *map(str, args.batch_sizes),
                    "--dr" if args.dr else "--no-dr", "--dr-B", str(args.dr_B), "--dr-T", str(args.dr_T),
                    "--dr-dtypes", *args.dr_dtypes]
             before = loadavg()
@@ -635,8 +647,7 @@ def main(argv=None) -> int:
     p.add_argument("--platform", choices=["cpu", "gpu"], default="cpu", help="JAX platform of the timed rows")
     p.add_argument("--batch-sizes", type=int, nargs="+", default=None, help="B values (default 1e4 on CPU, 1e4 1e5 1e6 on GPU)")
     p.add_argument("--T", type=int, default=None, help="time steps (default 1000)")
-    p.add_argument("--repeats", type=int, default=7, help="timed calls per JAX cell (median reported)")
-    p.add_argument("--numpy-repeats", type=int, default=3, help="timed calls of the NumPy KF")
+    p.add_argument("--repeats", type=int, default=7, help="timed rounds: every row called once per round (median reported)")
     p.add_argument("--numpy-max-runs", type=int, default=10_000, help="largest B for the per-run/NumPy rows")
     p.add_argument("--simulate", choices=["numpy", "device"], default=None,
                    help="where the data are simulated (default numpy on the CPU, device on a GPU)")

@@ -68,11 +68,13 @@ def _loops(jaxpr, found=None):
 
 
 def _carry_shapes(eqn):
+    """Shapes of a loop's floating-point carries (flags and result codes left out)."""
     if eqn.primitive.name == "scan":
         c, k = eqn.params["num_consts"], eqn.params["num_carry"]
-        return [tuple(v.aval.shape) for v in eqn.invars[c:c + k]]
-    nc = eqn.params["cond_nconsts"] + eqn.params["body_nconsts"]
-    return [tuple(v.aval.shape) for v in eqn.invars[nc:]]
+        carry = eqn.invars[c:c + k]
+    else:
+        carry = eqn.invars[eqn.params["cond_nconsts"] + eqn.params["body_nconsts"]:]
+    return [tuple(v.aval.shape) for v in carry if jnp.issubdtype(v.aval.dtype, jnp.inexact)]
 
 
 def _covariance_carry(carry, n):

@@ -254,8 +254,10 @@ class AbstractFilter(eqx.Module):
         mean0 = None if "filtered_means" in stacked else prior.mean
 
         def body(carry, xs):
-            state, result, last_mean, loglik = carry
+            state, result, last_mean, loglik, nan = carry
             t, y, u, k, o = xs
+            # NaN in an entry to use: checked here, where the step reads y anyway
+            nan = nan | jnp.any(jnp.isnan(y) if o is None else jnp.isnan(y) & o)
             state, out = step(model, state, y, t, u, k, observed=o)
             result = RESULTS.where(result == RESULTS.successful, out.result, result)
             fields = {
@@ -268,23 +270,26 @@ class AbstractFilter(eqx.Module):
             }
             loglik = None if loglik is None else loglik + out.loglik
             last_mean = None if last_mean is None else out.filtered.mean
-            return (state, result, last_mean, loglik), {name: fields[name] for name in stacked}
+            return (state, result, last_mean, loglik, nan), {name: fields[name] for name in stacked}
 
         xs = (jnp.arange(num_steps), ys, inputs, keys, observed)
-        carry0 = (carry_state0, RESULTS.successful, mean0, loglik0)
-        (_, result, last_mean, loglik), outs = lax.scan(body, carry0, xs)
+        carry0 = (carry_state0, RESULTS.successful, mean0, loglik0, jnp.zeros((), bool))
+        (_, result, last_mean, loglik, nan), outs = lax.scan(body, carry0, xs)
         if last_mean is None:
             last_mean = outs["filtered_means"][-1] if num_steps else prior.mean
         # A non-finite mean persists through the (linear in the mean) recursions, so checking
         # the last one once replaces a per-step, per-run check.
         finite = jnp.all(jnp.isfinite(last_mean))
         result = RESULTS.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite_state, result)
-        nan = jnp.isnan(ys) if observed is None else jnp.isnan(ys) & observed
-        result = RESULTS.where(jnp.any(nan), RESULTS.nan_observation, result)
+        result = RESULTS.where(nan, RESULTS.nan_observation, result)
         outs["marginal_loglik"] = loglik
         res = FilterResult(**{name: outs.get(name) for name in OUTPUTS}, result=result)
         if self.throw:
-            res = result.error_if(res, result != RESULTS.successful)
+            # Every float output is multiplied by a checked 1, so that the check survives
+            # whatever the caller keeps. (Passing the outputs themselves through the check's
+            # conditional costs a serial copy of each: XLA moves vmap's transpose into it.)
+            one = result.error_if(jnp.ones((), prior.mean.dtype), result != RESULTS.successful)
+            res = jax.tree.map(lambda x: x * one if jnp.issubdtype(x.dtype, jnp.inexact) else x, res)
         return res
 
 

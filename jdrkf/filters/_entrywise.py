@@ -77,8 +77,10 @@ def add(a: Mat, b: Mat) -> Mat:
 
 
 def symmetrize(a: Mat) -> Mat:
+    """`(a + aᵀ) / 2`, each off-diagonal entry computed once and shared by both positions."""
     n = len(a)
-    return tuple(tuple(a[i][i] if i == j else 0.5 * (a[i][j] + a[j][i]) for j in range(n)) for i in range(n))
+    low = {(i, j): 0.5 * (a[i][j] + a[j][i]) for i in range(n) for j in range(i)}
+    return tuple(tuple(a[i][i] if i == j else low[max(i, j), min(i, j)] for j in range(n)) for i in range(n))
 
 
 def cholesky(a: Mat) -> Mat:
