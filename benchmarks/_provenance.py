@@ -118,3 +118,22 @@ def device_summary(jax) -> str:
     devs = jax.devices()
     kind = devs[0].device_kind if devs[0].platform != "cpu" else ""
     return f"{devs[0].platform}{': ' + kind if kind else ''} ({len(devs)} device{'s' if len(devs) > 1 else ''})"
+
+
+def write_results(res: dict, stem: str, render, started: tuple[float, float], packages=("jax", "jaxlib", "numpy", "scipy", "jdrkf")) -> str:
+    """Finish a results dict and write `stem.json` and `stem.md` (`render(res)`): wall and CPU
+    seconds since `started = (time.time(), time.process_time())`, versions, git state, the
+    library's source hash and the load average. Returns the portable stem for the log."""
+    import json
+    import time
+
+    res["wall_s"] = time.time() - started[0]
+    res["cpu_s"] = time.process_time() - started[1]
+    res["provenance"] = {"versions": versions(packages), "git": git_info(), "jdrkf_source_sha256": package_source_hash(),
+                         "loadavg": loadavg()}
+    os.makedirs(os.path.dirname(stem) or ".", exist_ok=True)
+    with open(stem + ".json", "w") as f:
+        json.dump(res, f, indent=1, default=float)
+    with open(stem + ".md", "w") as f:
+        f.write(render(res))
+    return portable_path(stem)

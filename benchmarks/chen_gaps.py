@@ -54,7 +54,6 @@ Usage: `python benchmarks/chen_gaps.py [--quick] [--seed 0] [--seeds 20] [--out 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -291,7 +290,7 @@ def main(argv=None):
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import jax.numpy as jnp
 
-    from _provenance import git_info, loadavg, package_source_hash, portable_path, versions
+    from _provenance import write_results
     from jdrkf import KalmanFilter
     from jdrkf.experiments import chen_fusion as cf
     from jdrkf.filters._fusion import CovarianceIntersection
@@ -411,17 +410,8 @@ def main(argv=None):
                      "KF P0 = 100 I (first batch)": summarize_filter(kf_p0, "KF")}
     log("section 3 done: pooled KF a " + f"{spread['KF (sensor 1)']['pooled']['a']['mean']:.3f}")
 
-    res["wall_s"] = time.time() - t_start
-    res["cpu_s"] = time.process_time() - cpu_start
-    res["provenance"] = {"versions": versions(("jax", "jaxlib", "numpy", "scipy", "jdrkf")), "git": git_info(),
-                         "jdrkf_source_sha256": package_source_hash(), "loadavg": loadavg()}
-    os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, "chen_gaps" + ("_quick" if quick else ""))
-    with open(stem + ".json", "w") as f:
-        json.dump(res, f, indent=1, default=float)
-    with open(stem + ".md", "w") as f:
-        f.write(render(res))
-    log(f"wrote {portable_path(stem)}.md/.json")
+    log(f"wrote {write_results(res, stem, render, (t_start, cpu_start))}.md/.json")
     return res
 
 

@@ -48,7 +48,6 @@ Usage: `python benchmarks/li_gaps.py [--quick] [--seed 0] [--runs 200] [--out be
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -204,7 +203,7 @@ def main(argv=None):
     jax.config.update("jax_enable_x64", True)  # the benchmark process, not the library
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-    from _provenance import git_info, loadavg, package_source_hash, portable_path, versions
+    from _provenance import write_results
     from jdrkf.experiments import li_variational as lv
 
     quick = args.quick
@@ -364,17 +363,8 @@ def main(argv=None):
     res["torsion_y3_kf"] = y3
     log(f"torsion y3: KF x3 all {kf[:, 2].mean():.3f}, low-energy runs {kf[low, 2].mean():.3f} (paper {kpaper[2]})")
 
-    res["wall_s"] = time.time() - t_start
-    res["cpu_s"] = time.process_time() - cpu_start
-    res["provenance"] = {"versions": versions(("jax", "jaxlib", "numpy", "scipy", "jdrkf")), "git": git_info(),
-                         "jdrkf_source_sha256": package_source_hash(), "loadavg": loadavg()}
-    os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, "li_gaps" + ("_quick" if quick else ""))
-    with open(stem + ".json", "w") as f:
-        json.dump(res, f, indent=1, default=float)
-    with open(stem + ".md", "w") as f:
-        f.write(render(res))
-    log(f"wrote {portable_path(stem)}.md/.json")
+    log(f"wrote {write_results(res, stem, render, (t_start, cpu_start))}.md/.json")
     return res
 
 

@@ -539,7 +539,7 @@ def main(argv=None):
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import jax.numpy as jnp
 
-    from _provenance import git_info, loadavg, package_source_hash, portable_path, versions
+    from _provenance import write_results
     from jdrkf import KalmanFilter, WassersteinKF, metrics
     from jdrkf._montecarlo import montecarlo
     from jdrkf.experiments import wang_ye as wy
@@ -710,17 +710,8 @@ def main(argv=None):
         runs, steps = (4, 2000) if quick else (BREAKDOWN_RUNS, 10_000)
         res["tau"] = tau_section(args.seed, blocks, runs, steps, log)
 
-    res["wall_s"] = time.time() - t_start
-    res["cpu_s"] = time.process_time() - cpu_start
-    res["provenance"] = {"versions": versions(("jax", "jaxlib", "numpy", "scipy", "jdrkf")), "git": git_info(),
-                         "jdrkf_source_sha256": package_source_hash(), "loadavg": loadavg()}
-    os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, "wang_ye_gaps" + ("" if len(sections) == 2 else "_" + sections[0]) + ("_quick" if quick else ""))
-    with open(stem + ".json", "w") as f:
-        json.dump(res, f, indent=1, default=float)
-    with open(stem + ".md", "w") as f:
-        f.write(render(res))
-    log(f"wrote {portable_path(stem)}.md/.json")
+    log(f"wrote {write_results(res, stem, render, (t_start, cpu_start))}.md/.json")
     return res
 
 
