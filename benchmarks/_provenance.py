@@ -133,7 +133,18 @@ def write_results(res: dict, stem: str, render, started: tuple[float, float], pa
                          "loadavg": loadavg()}
     os.makedirs(os.path.dirname(stem) or ".", exist_ok=True)
     with open(stem + ".json", "w") as f:
-        json.dump(res, f, indent=1, default=float)
+        json.dump(res, f, indent=1, default=_json_default)
     with open(stem + ".md", "w") as f:
         f.write(render(res))
     return portable_path(stem)
+
+
+def _json_default(x):
+    """NumPy scalars and arrays in a results dict, as JSON."""
+    import numpy as np
+
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    raise TypeError(f"not JSON serializable: {type(x).__name__}")

@@ -632,7 +632,7 @@ def our_episodes(setting, seed, runs, train_runs, chosen, log, take=None):
 
     from jdrkf import KalmanFilter, LinearModel
     from jdrkf import closed_loop as jd_closed_loop
-    from jdrkf._closed_loop import LQRController
+    from jdrkf import LQRController
     from jdrkf.experiments import jang
 
     j = ("gaussian", "uquadratic").index(setting)
@@ -677,7 +677,7 @@ def jdrkf_protocol_runs(setting, name, seed, runs):
     import jax
     import jax.numpy as jnp
 
-    from jdrkf._closed_loop import LQRController
+    from jdrkf import LQRController
     from jdrkf.experiments import jang
 
     pairs = jax.vmap(jax.random.split)(jax.random.split(jax.random.key(seed), runs))
@@ -748,16 +748,10 @@ def main(argv=None):
     jax.config.update("jax_enable_x64", True)  # the benchmark process, not the library
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import jax.numpy as jnp
-    from _provenance import (
-        git_info,
-        loadavg,
-        package_source_hash,
-        portable_path,
-        versions,
-    )
+    from _provenance import write_results
 
     from jdrkf import BCOTKF, Gaussian, LinearModel
-    from jdrkf._em import em_noise_covariances
+    from jdrkf import em_noise_covariances
     from jdrkf.experiments import jang
 
     quick = args.quick
@@ -1099,26 +1093,9 @@ def main(argv=None):
     mark(f"risk-sensitive: θ grid on the authors' seeds, our runs and {population} seeds", t0)
 
     res["cpu_by_section_s"] = cpu_marks
-    res["wall_s"] = time.time() - t_start
-    res["cpu_s"] = time.process_time() - cpu_start
-    res["provenance"] = {"versions": versions(("jax", "jaxlib", "numpy", "scipy", "jdrkf")), "git": git_info(),
-                         "jdrkf_source_sha256": package_source_hash(), "loadavg": loadavg()}
-    os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, "jang_gaps" + ("_quick" if quick else ""))
-    with open(stem + ".json", "w") as f:
-        json.dump(res, f, indent=1, default=_json_default)
-    with open(stem + ".md", "w") as f:
-        f.write(render(res))
-    log(f"wrote {portable_path(stem)}.md/.json")
+    log(f"wrote {write_results(res, stem, render, (t_start, cpu_start))}.md/.json")
     return res
-
-
-def _json_default(x):
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    raise TypeError(type(x))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -318,9 +318,9 @@ def main(argv=None):
     # KF under the other laws on record (fresh episodes, same count)
     laws = {}
     import jax.numpy as jnp
-    from jdrkf._noise import GaussianNoise, ScaledNoise
-    from jdrkf._simulate import simulate
-    from jdrkf._gaussian import Gaussian
+    from jdrkf import GaussianNoise, ScaledNoise
+    from jdrkf import simulate
+    from jdrkf import Gaussian
 
     def kf_law(factor, k):
         meas = ScaledNoise(GaussianNoise(im.R), factor)

@@ -419,7 +419,7 @@ def tau_section(seed, blocks, runs, num_steps, log):
     import jax
 
     from jdrkf import metrics
-    from jdrkf._montecarlo import montecarlo
+    from jdrkf import montecarlo
     from jdrkf.experiments import wang_ye as wy
     from jdrkf.experiments import wang_ye_sweeps as ws
     from jdrkf.filters import TauKF
@@ -541,7 +541,7 @@ def main(argv=None):
 
     from _provenance import write_results
     from jdrkf import KalmanFilter, WassersteinKF, metrics
-    from jdrkf._montecarlo import montecarlo
+    from jdrkf import montecarlo
     from jdrkf.experiments import wang_ye as wy
 
     quick = args.quick

@@ -29,7 +29,7 @@ import pytest
 import equinox as eqx
 
 from jdrkf import BCOTKF, Gaussian, LinearModel
-from jdrkf._em import em_noise_covariances
+from jdrkf import em_noise_covariances
 from jdrkf.sets import bcot_worst_case
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -101,7 +101,7 @@ def test_oracle_kf_equals_jdrkf_closed_loop_on_our_episodes():
     import jax
 
     from jdrkf import KalmanFilter, closed_loop
-    from jdrkf._closed_loop import LQRController
+    from jdrkf import LQRController
     from jdrkf.experiments import jang
 
     v = orc.SETTINGS["uquadratic"][1]
