@@ -164,7 +164,7 @@ def kalman_step(model, state: tuple[Vec, Mat], y, t, u=None, observed=None) -> t
     hp = matmul(h, cov_pred)
     chol_s = cholesky(symmetrize(add(matmul(hp, transpose(h)), r)))
     failed = ~_finite(chol_s)
-    gain = transpose(tuple(zip(*(backward(chol_s, forward(chol_s, col)) for col in zip(*hp)))))  # (S⁻¹ H P)ᵀ
+    gain = tuple(backward(chol_s, forward(chol_s, col)) for col in zip(*hp))  # row j of K = (S⁻¹ H P)ᵀ: S⁻¹ (HP)[:, j]
     mean_filt = tuple(a + b for a, b in zip(mean_pred, matvec(gain, innov)))
     n = len(mean)
     kh = matmul(gain, h)
