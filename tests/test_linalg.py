@@ -227,3 +227,26 @@ def test_matmul_equals_at_for_vectors_and_matrices(rng, k):
     xs = rng.normal(size=(5, k))
     np.testing.assert_allclose(jax.vmap(linalg.matmul, in_axes=(None, 0))(a, xs), xs @ a.T, rtol=1e-13, atol=1e-14)
     np.testing.assert_allclose(linalg.matmul(np.zeros((2, 0)), np.zeros(0)), np.zeros(2))
+
+
+def test_matmul_gradient_under_jit_vmap_matches_at(rng):
+    a, xs = rng.normal(size=(3, 4)), rng.normal(size=(5, 4))
+
+    def grads(mm):
+        loss = lambda a, x: jnp.sum(jnp.sin(mm(a, x)))  # noqa: E731
+        return jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1)), in_axes=(None, 0)))(a, xs)
+
+    for got, want in zip(grads(linalg.matmul), grads(lambda a, x: a @ x)):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-13)
+    # the derivative itself, against central differences of the first run's loss
+    eps, x0 = 1e-6, xs[0]
+    fd = np.array([(np.sum(np.sin((a + eps * e) @ x0)) - np.sum(np.sin((a - eps * e) @ x0))) / (2 * eps)
+                   for e in np.eye(12).reshape(12, 3, 4)]).reshape(3, 4)
+    np.testing.assert_allclose(grads(linalg.matmul)[0][0], fd, rtol=1e-6, atol=1e-8)
+
+
+def test_unrolls_follows_the_size_limit_and_lapack_only():
+    assert linalg.unrolls(linalg.UNROLL_MAX) and not linalg.unrolls(linalg.UNROLL_MAX + 1)
+    with linalg.lapack_only():
+        assert not linalg.unrolls(1)
+    assert linalg.unrolls(1)
