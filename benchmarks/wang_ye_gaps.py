@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Wang & Ye (2022), Tables I–III and Fig. 2: three gaps between jdrkf's reproductions
+"""Wang & Ye (2022), Tables I–III and Fig. 2: four gaps between jdrkf's reproductions
 (`jdrkf reproduce wang-ye-table1/2/3`, `wang-ye-breakdown`) and the paper, explained with an independent
 NumPy oracle of the authors' MATLAB code (`Spratm-Asleaf/DRSE-Outlier`).
 
@@ -9,6 +9,7 @@ paper in Tables II–III and worse than the KF in our runs, while the paper has 
 Gap B — Table I MKF (α = 1, no outliers): ours 11.09 vs the paper's 9.91.
 Gap C — the breakdown test's τ-KF (Fig. 2, T = 10⁴, ±50 outliers): the paper's number is above
 our 95% interval at 7 of 8 grid points.
+Gap D — the breakdown MKF at α = 1, ε_real = 0: the paper's 9.72 is below our 95% interval (11.03).
 
 What the script does (all NumPy oracles are written from the authors' algorithm
 descriptions, not from jdrkf):
@@ -38,13 +39,17 @@ descriptions, not from jdrkf):
    process covariance (GQGᵀ)²) — in a NumPy oracle checked against the Kalman predictor (c = 0) and
    jdrkf's `TauKF` predicted means, then run on the breakdown's episodes (`jdrkf reproduce
    wang-ye-breakdown`, seeds 0…9): ours (filtered), each handicap alone, and both.
+5. Gap D: the breakdown's KF, HKF, MKF and TMKF-off-by-one at α = 1 on the same episodes: where the
+   paper's number of each filter lies among ours (one episode: hard or easy for all of them), and the
+   MKF predicted from the same episode's KF, HKF and TMKF-off-by-one RMSEs (least squares over our
+   episodes, 95% prediction interval) at the paper's numbers.
 
 Every number is a mean over seeded episodes with a 95% Student-t interval; a paper value
 is "consistent" with a setting when it lies in the central 95% of that setting's
 per-episode values (empirical 2.5–97.5 percentiles with ≥ 100 episodes, else mean ± 1.96 sd).
 
-Usage: `python benchmarks/wang_ye_gaps.py [--quick] [--seed 0] [--sections wkf,tau] [--tau-blocks 10]
-[--out benchmarks/results]` (`--sections wkf`: sections 1–3, `tau`: section 4).
+Usage: `python benchmarks/wang_ye_gaps.py [--quick] [--seed 0] [--sections wkf,tau,mkf] [--tau-blocks 10]
+[--out benchmarks/results]` (`--sections wkf`: sections 1–3, `tau`: section 4, `mkf`: section 5).
 """
 
 from __future__ import annotations
@@ -386,6 +391,8 @@ FORM_VARIANTS = ("current code", "exact solver", "sqrt-broadcast", "block-diagon
 # Section 4: the τ-KF of the breakdown test (Fig. 2)
 # ----------------------------------------------------------------------------------------------
 
+SECTIONS = ("wkf", "tau", "mkf")
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BREAKDOWN_REPORT = os.path.join(ROOT, "docs", "reproductions", "wang-ye-breakdown.json")
 TAU_EPS_REAL = (0.0, 0.1, 0.3, 0.5)  # the paper's grid points with a published τ-KF number
@@ -518,20 +525,99 @@ def tau_section(seed, blocks, runs, num_steps, log):
     return out
 
 
+# ----------------------------------------------------------------------------------------------
+# Section 5: the breakdown MKF at α = 1 (Fig. 2(b)), conditioned on the paper's episode
+# ----------------------------------------------------------------------------------------------
+
+# Filters whose paper numbers describe the episode and are explained without the MKF: the KF and
+# HKF (equal to the authors' code, section 1) and the authors' TMKF (the clairvoyant KF fed F_{t+1}).
+MKF_PREDICTORS = ("KF", "HKF", "TMKF-off-by-one")
+
+
+def conditional_prediction(y, x, x0):
+    """Least-squares fit `y ≈ b₀ + x b` over episodes and the prediction at `x0` with its 95%
+    prediction interval (Student t, n − q degrees of freedom): `(prediction, (lo, hi), residual sd)`."""
+    from scipy import stats
+
+    a = np.column_stack([np.ones(len(y)), np.asarray(x, float)])
+    beta, *_ = np.linalg.lstsq(a, y, rcond=None)
+    n, q = a.shape
+    s2 = float(np.sum((y - a @ beta) ** 2) / (n - q))
+    z = np.concatenate([[1.0], np.asarray(x0, float)])
+    pred = float(z @ beta)
+    half = float(stats.t.ppf(0.975, n - q)) * np.sqrt(s2 * (1.0 + z @ np.linalg.solve(a.T @ a, z)))
+    return pred, (pred - half, pred + half), float(np.sqrt(s2))
+
+
+def mkf_section(seed, blocks, runs, num_steps, log, eps_real=TAU_EPS_REAL):
+    """The breakdown MKF at α = 1 on the breakdown protocol's episodes (seeds `seed … seed + blocks − 1`):
+    the percentile of the paper's number for each filter, the MKF ratios, and the MKF predicted from
+    the same episode's KF, HKF and TMKF-off-by-one RMSEs (`conditional_prediction`) at the paper's."""
+    import jax
+
+    from jdrkf import metrics
+    from jdrkf import montecarlo
+    from jdrkf.experiments import wang_ye as wy
+    from jdrkf.experiments import wang_ye_sweeps as ws
+
+    cpu0 = time.process_time()
+    model, p0, all_filters = wy.nominal_model(), wy.prior(), wy.filters()
+    flts = {f: all_filters[f] for f in ("KF", "HKF", "MKF")}
+    rmse_metric = {"rmse": lambda tr, r: metrics.rmse(tr.states, r.filtered_means)}
+    names = ("KF", "HKF", "MKF", "TMKF-off-by-one")
+    vals = {e: {f: [] for f in names} for e in eps_real}
+    for s in range(seed, seed + blocks):
+        key = jax.random.fold_in(jax.random.key(s), 1)  # as `run_breakdown` (seed s), α = 1
+        for j, e in enumerate(eps_real):
+            tr = wy.scenario(key, runs, 1.0, True, num_steps, prob=e, magnitude=ws.BREAKDOWN_MAGNITUDE)
+            out = montecarlo(flts, model, p0, tr, metrics=rmse_metric, chunk_size=500)
+            for f in flts:
+                vals[e][f] += list(np.asarray(out[f]["rmse"]))
+            if j == 0:  # the TMKF sees outlier-free data: the same at every ε_real
+                obo = montecarlo({"TMKF": all_filters["TMKF"]}, model, p0, ws._shift_transitions(tr), metrics=rmse_metric, chunk_size=500)
+                tmkf = list(np.asarray(obo["TMKF"]["rmse"]))
+            vals[e]["TMKF-off-by-one"] += tmkf
+    log(f"mkf episodes done ({time.process_time() - cpu0:.0f} s CPU)")
+
+    cells = []
+    for e in eps_real:
+        v = {f: np.asarray(x) for f, x in vals[e].items()}
+        paper = {f: ws.PAPER_BREAKDOWN[1.0][e][f] for f in ("KF", "HKF", "MKF")}
+        paper["TMKF-off-by-one"] = ws.PAPER_BREAKDOWN[1.0][e]["TMKF"]
+        pred, (lo, hi), sd = conditional_prediction(v["MKF"], np.column_stack([v[f] for f in MKF_PREDICTORS]),
+                                                    [paper[f] for f in MKF_PREDICTORS])
+        easy = np.all([v[f] <= paper[f] for f in ("KF", "HKF")], axis=0)
+        cells.append({
+            "eps_real": e, "paper": paper,
+            "filters": {f: summarize(v[f], paper[f]) for f in names},
+            "ratios": {f"MKF/{f}": summarize(v["MKF"] / v[f], paper["MKF"] / paper[f]) for f in MKF_PREDICTORS},
+            "conditional": {"predictors": list(MKF_PREDICTORS), "prediction": pred, "pi95": [lo, hi], "residual_sd": sd,
+                            "consistent": bool(lo <= paper["MKF"] <= hi),
+                            "correlation_with_MKF": {f: float(np.corrcoef(v[f], v["MKF"])[0, 1]) for f in MKF_PREDICTORS}},
+            "easy_episodes": {"count": int(easy.sum()), "MKF": sorted(float(x) for x in v["MKF"][easy]),
+                              "MKF_at_or_below_paper": int(np.sum(v["MKF"][easy] <= paper["MKF"]))},
+        })
+        log(f"mkf ε_real={e:g}: paper {paper['MKF']:g} at the {cells[-1]['filters']['MKF']['target_percentile']:.1f}th percentile; "
+            f"predicted from the episode {pred:.2f} [{lo:.2f}, {hi:.2f}]")
+    return {"seeds": list(range(seed, seed + blocks)), "runs_per_block": runs, "episodes_per_cell": runs * blocks,
+            "T": num_steps, "magnitude": ws.BREAKDOWN_MAGNITUDE, "cells": cells, "cpu_s": time.process_time() - cpu0}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer episodes and shorter long runs (smoke test)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--episodes", type=int, default=None, help="episodes per T=1000 setting (default 400; quick 60)")
     ap.add_argument("--tau-blocks", type=int, default=None,
-                    help="section 4: blocks of 20 breakdown episodes per cell, report seeds seed, seed+1, … (default 10; quick 1)")
-    ap.add_argument("--sections", default="wkf,tau",
-                    help="comma-separated: wkf (sections 1–3), tau (section 4); a subset writes wang_ye_gaps_<subset>.{md,json}")
+                    help="sections 4–5: blocks of 20 breakdown episodes per cell, report seeds seed, seed+1, … (default 10; quick 1)")
+    ap.add_argument("--sections", default=",".join(SECTIONS),
+                    help="comma-separated: wkf (sections 1–3), tau (section 4), mkf (section 5); a subset writes "
+                         "wang_ye_gaps_<subset>.{md,json}")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
     args = ap.parse_args(argv)
-    sections = [s for s in ("wkf", "tau") if s in args.sections.split(",")]
-    if not sections or set(args.sections.split(",")) - {"wkf", "tau"}:
-        ap.error(f"--sections: choose from wkf, tau (got {args.sections!r})")
+    sections = [s for s in SECTIONS if s in args.sections.split(",")]
+    if not sections or set(args.sections.split(",")) - set(SECTIONS):
+        ap.error(f"--sections: choose from {', '.join(SECTIONS)} (got {args.sections!r})")
 
     import jax
 
@@ -709,8 +795,14 @@ def main(argv=None):
         blocks = args.tau_blocks or (1 if quick else 10)
         runs, steps = (4, 2000) if quick else (BREAKDOWN_RUNS, 10_000)
         res["tau"] = tau_section(args.seed, blocks, runs, steps, log)
+    if "mkf" in sections:
+        # ---- 5. the breakdown MKF at α = 1 -------------------------------------------------------
+        blocks = args.tau_blocks or (1 if quick else 10)
+        runs, steps = (4, 2000) if quick else (BREAKDOWN_RUNS, 10_000)
+        res["mkf"] = mkf_section(args.seed, blocks, runs, steps, log)
 
-    stem = os.path.join(args.out, "wang_ye_gaps" + ("" if len(sections) == 2 else "_" + sections[0]) + ("_quick" if quick else ""))
+    subset = "" if len(sections) == len(SECTIONS) else "_" + "_".join(sections)
+    stem = os.path.join(args.out, "wang_ye_gaps" + subset + ("_quick" if quick else ""))
     log(f"wrote {write_results(res, stem, render, (t_start, cpu_start))}.md/.json")
     return res
 
@@ -721,18 +813,20 @@ def _fmt(s, digits=3):
 
 def render(res) -> str:
     sections = res.get("sections", ["wkf"])
-    lines = ["# Wang & Ye (2022): the WKF, Table I MKF and breakdown τ-KF gaps", "",
+    lines = ["# Wang & Ye (2022): the WKF, Table I MKF, breakdown τ-KF and breakdown MKF gaps", "",
              f"Seed {res['seed']}"
              + (f"; {res['episodes_T1000']} episodes per 1000-step setting; "
                 f"{res['episodes_long']['5000']} / {res['episodes_long']['10000']} episodes of the 5000 / 10⁴-step settings"
                 + (" (quick: 10⁴-step settings run at 5000 steps)" if res["quick"] else "") if "wkf" in sections else "")
              + f"; wall {res['wall_s']:.0f} s, CPU (user + sys) {res.get('cpu_s', float('nan')):.0f} s. "
              "Intervals: 95% Student-t for the mean over episodes. Generated by `benchmarks/wang_ye_gaps.py`"
-             + ("" if len(sections) == 2 else f" --sections {','.join(sections)}") + ".", ""]
+             + ("" if len(sections) == len(SECTIONS) else f" --sections {','.join(sections)}") + ".", ""]
     if "wkf" in sections:
         lines += _render_wkf(res)
     if "tau" in sections:
         lines += _render_tau(res["tau"])
+    if "mkf" in sections:
+        lines += _render_mkf(res["mkf"])
     return "\n".join(lines) + "\n"
 
 
@@ -841,6 +935,34 @@ def _render_tau(tau) -> list:
         lines.append(f"Block s = 0 is the stored report's {tau['runs_per_block']} runs: (a) on it equals the report's "
                      f"tau-KF means to {max(st['block0_abs_diff'] for st in stored):.1e}.")
     return lines + [""]
+
+
+def _render_mkf(mk) -> list:
+    lines = ["## 5. The breakdown MKF at α = 1 (Fig. 2(b)), given the paper's episode", "",
+             f"Episodes: those of `jdrkf reproduce wang-ye-breakdown --seed s` at α = 1 for s = {mk['seeds'][0]}…{mk['seeds'][-1]} "
+             f"({mk['runs_per_block']} runs each, T = {mk['T']}, ±{mk['magnitude']:g} outliers), {mk['episodes_per_cell']} "
+             "per cell. Each paper number is one episode. Its percentile among our per-episode RMSEs says how hard that "
+             "episode was for each filter; the MKF predicted from the same episode's KF, HKF and TMKF-off-by-one "
+             "(the authors' TMKF, fed F_{t+1}) RMSEs — a least-squares fit over our episodes, evaluated at the paper's "
+             f"numbers, with its 95% prediction interval — says whether the paper's MKF fits that episode. "
+             f"Section CPU time (user + sys) {mk['cpu_s']:.0f} s.", "",
+             "| ε_real | paper MKF | ours: mean [95% CI] | percentile of the paper's number: KF / HKF / TMKF-off-by-one / MKF "
+             "| MKF/KF: paper, ours, percentile | MKF predicted from the episode [95% PI] | episodes with KF and HKF ≤ the paper's: MKF range |",
+             "|---|---|---|---|---|---|---|"]
+    for cl in mk["cells"]:
+        f, c, r, ez = cl["filters"], cl["conditional"], cl["ratios"]["MKF/KF"], cl["easy_episodes"]
+        pct = " / ".join(f"{f[k]['target_percentile']:.1f}%" for k in ("KF", "HKF", "TMKF-off-by-one", "MKF"))
+        rng = f"{ez['count']}: {ez['MKF'][0]:.2f}–{ez['MKF'][-1]:.2f} ({ez['MKF_at_or_below_paper']} ≤ paper)" if ez["count"] else "0"
+        lines.append(f"| {cl['eps_real']:g} | {cl['paper']['MKF']:g} | {_fmt(f['MKF'], 2)} | {pct} | {r['target']:.3f}, "
+                     f"{_fmt(r)}, {r['target_percentile']:.0f}% | {c['prediction']:.2f} [{c['pi95'][0]:.2f}, {c['pi95'][1]:.2f}] "
+                     f"{'✓' if c['consistent'] else '✗'} (residual sd {c['residual_sd']:.2f}) | {rng} |")
+    first = mk["cells"][0]
+    lines += ["", f"At ε_real = 0 the correlation of the MKF with the predictors over episodes is "
+              + ", ".join(f"{k} {v:.2f}" for k, v in first["conditional"]["correlation_with_MKF"].items())
+              + ". The paper's numbers in a cell come from one episode, so a hard or easy episode moves them together: "
+              "where every filter's paper number is low among ours, the paper's episode was easy, and the MKF is judged "
+              "against what that episode predicts for it.", ""]
+    return lines
 
 
 if __name__ == "__main__":
