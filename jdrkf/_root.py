@@ -234,7 +234,7 @@ def bracketed_newton(f: Callable, x0, lo, hi, max_iter, *, x_scale: float = 0.0,
     Each step shrinks the bracket with the sign of `f(x)` (`lo = x` where `f(x) < 0`, else
     `hi = x`) and takes the Newton step `x − f(x)/f'(x)` if it lands in the bracket
     (steps leaving it by a few ulps are clipped into it, since `f` may be evaluated twice
-    with different rounding), else bisects. A Newton step back onto an end of the bracket
+    with different rounding), else bisects. A Newton step (above the step tolerance) back onto an end of the bracket
     that was already evaluated bisects too: at the noise floor of `f` Newton may
     alternate between two points whose distance exceeds the step tolerance, and under
     `vmap` one such member would keep every member iterating to `max_iter`. From a
@@ -268,7 +268,8 @@ def bracketed_newton(f: Callable, x0, lo, hi, max_iter, *, x_scale: float = 0.0,
         inside = jnp.isfinite(newton) & (newton >= lo - slack) & (newton <= hi + slack)
         trial = jnp.clip(newton, lo, hi)
         revisit = ((trial == lo) & (lo != lo0)) | ((trial == hi) & (hi != hi0))  # f known there: no progress
-        x_new = jnp.where(inside & ~revisit, trial, 0.5 * (lo + hi))
+        # A step below the tolerance has converged (it may round onto the end just set to x): take it and stop.
+        x_new = jnp.where(inside & (~revisit | (jnp.abs(step) <= tol(x))), trial, 0.5 * (lo + hi))
         fx_new, dfx_new = evaluate(x_new)
         return x_new, fx_new, dfx_new, lo, hi, x_new - x, k + 1
 

@@ -125,6 +125,17 @@ def test_bracketed_newton_bisects_when_newton_leaves_the_bracket():
     assert int(capped.iterations) == 1 and not bool(capped.stopped)
 
 
+def test_bracketed_newton_stops_when_a_converged_step_rounds_onto_the_bracket_end():
+    """At the noise floor f(x) > 0 at the root's double (here 1e-17 at x = 0.75, as a rounded
+    residual would be), so x becomes the bracket's upper end, and the Newton step, below the
+    step tolerance, rounds back onto x. That is convergence: the search must stop there, not
+    bisect the bracket (the earlier rule restarted from the midpoint: 52 steps here, up to 30
+    in the Wasserstein oracle)."""
+    f = lambda x: (x - 0.75 + jnp.where(x == 0.75, 1e-17, 0.0), jnp.ones_like(x))  # noqa: E731
+    sol = bracketed_newton(f, jnp.asarray(1.0), 0.0, 2.0, 100, has_slope=True)
+    assert float(sol.x) == 0.75 and bool(sol.stopped) and int(sol.iterations) <= 3, sol
+
+
 def _sqrt_by_root(p):
     """`√p` as the root of `x² − p` on `[0, max(1, p)]`, with implicit derivatives."""
 

@@ -744,3 +744,17 @@ _S = O.random_joint(np.random.default_rng(8), 2, 1)
 def test_bad_input(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+@pytest.mark.parametrize("kind", ["wasserstein", "kl"])
+def test_oracle_warm_start_gives_the_cold_start_answer(rng, kind):
+    """`oracle(..., guess=g)` starts the multiplier's root search at `g` (Frank–Wolfe passes the
+    previous iterate's): any guess, inside the bracket or not, gives the same maximizer."""
+    d = 4
+    nom, direction = O.random_spd(rng, d), O.random_spd(rng, d, 0.0)
+    ball = Wasserstein(0.7) if kind == "wasserstein" else KL(0.3)
+    cov, mult = ball.oracle(jnp.asarray(direction), jnp.asarray(nom))
+    for guess in (0.5 * mult, 0.99 * mult, 1.01 * mult, 2.0 * mult, -1.0, 0.0, 1e6, jnp.nan):
+        cov_g, mult_g = ball.oracle(jnp.asarray(direction), jnp.asarray(nom), guess=jnp.asarray(guess))
+        np.testing.assert_allclose(mult_g, mult, rtol=1e-13)
+        np.testing.assert_allclose(cov_g, cov, rtol=1e-12, atol=1e-13)

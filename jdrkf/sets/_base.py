@@ -20,10 +20,12 @@ class AbstractAmbiguitySet(eqx.Module):
 
     @abc.abstractmethod
     def oracle(
-        self, direction: Float[Array, "d d"], nominal: Float[Array, "d d"]
+        self, direction: Float[Array, "d d"], nominal: Float[Array, "d d"], guess: Float[Array, ""] | None = None
     ) -> tuple[Float[Array, "d d"], Float[Array, ""]]:
         """Maximizer of `⟨direction, Σ⟩` over the set (for PSD `direction`) and the
-        scalar multiplier that determines it. Forward pass only: not differentiable."""
+        scalar multiplier that determines it. `guess`: a multiplier to start the set's
+        scalar root search from (e.g. the previous Frank–Wolfe iterate's; any value is
+        safe, the search is bracketed). Forward pass only: not differentiable."""
 
     @abc.abstractmethod
     def residual(
@@ -49,3 +51,10 @@ class AbstractAmbiguitySet(eqx.Module):
         """Linear maximization oracle: `argmax ⟨direction, Σ⟩` over the set."""
         direction, nominal = jnp.asarray(direction), jnp.asarray(nominal)
         return self.oracle(direction, nominal)[0]
+
+
+def warm_start(guess: Float[ArrayLike, ""], lo, default, hi) -> Float[Array, ""]:
+    """Start of a bracketed scalar root search on `(lo, hi)`: `guess` if it is finite and
+    strictly inside, else `default`."""
+    guess = jnp.asarray(guess, jnp.result_type(default))
+    return jnp.where(jnp.isfinite(guess) & (guess > lo) & (guess < hi), guess, default)

@@ -9,7 +9,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .. import linalg
 from .._root import bracketed_newton
 from .._validation import check_scalar, in_range, renamed, renamed_attribute
-from ._base import AbstractAmbiguitySet
+from ._base import AbstractAmbiguitySet, warm_start
 
 _NEWTON_MAX_ITER = 200
 # φ(x) = 1/(1 − x) − 1 + ln(1 − x) = Σ_{k≥2} (1 − 1/k) xᵏ: below this size of x the closed
@@ -73,7 +73,7 @@ class KL(AbstractAmbiguitySet):
     def valid(self):
         return in_range(self.radius, 0.0)
 
-    def oracle(self, direction, nominal):
+    def oracle(self, direction, nominal, guess=None):
         c = lax.stop_gradient(self.radius).astype(nominal.dtype)
         direction, nominal = lax.stop_gradient(linalg.symmetrize(direction)), lax.stop_gradient(nominal)
         r = linalg.cholesky(nominal)
@@ -90,7 +90,8 @@ class KL(AbstractAmbiguitySet):
         # Start right of the root: ½ φ(1 − δ) ≥ c for δ = 1/(4c + 20). Convex and
         # increasing in t on [0, 1/μ_max): Newton decreases monotonically to the root.
         t0 = (1.0 - 1.0 / (4.0 * c + 20.0)) / mu_max
-        t = bracketed_newton(g_and_slope, t0, 0.0, 1.0 / mu_max, _NEWTON_MAX_ITER, has_slope=True).x
+        start = t0 if guess is None else warm_start(guess, 0.0, t0, 1.0 / mu_max)
+        t = bracketed_newton(g_and_slope, start, 0.0, 1.0 / mu_max, _NEWTON_MAX_ITER, has_slope=True).x
         rq = r @ q
         cov = linalg.symmetrize((rq / (1.0 - t * mu)) @ rq.T)
         return jnp.where(active, cov, nominal), jnp.where(active, t, 0.0)

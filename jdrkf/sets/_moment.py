@@ -38,7 +38,7 @@ class Moment(AbstractAmbiguitySet):
         """`θ₂ Σ̂` (Theorem 5)."""
         return self.theta2.astype(nominal.dtype) * nominal
 
-    def oracle(self, direction, nominal):
+    def oracle(self, direction, nominal, guess=None):
         return self.worst_case(nominal), jnp.zeros((), nominal.dtype)
 
     def residual(self, cov, multiplier, direction, nominal):

@@ -142,9 +142,11 @@ def _frank_wolfe(fg, sets, nominals, rtol, max_iter):
         return (~c[3]) & (c[1] < max_iter)
 
     def body(c):
-        s, k, beta, _, _ = c
+        s, k, beta, _, mults = c
         value, grads = fg(s)
-        lmos, mults = zip(*(st.oracle(g, nom) for st, g, nom in zip(sets, grads, nominals, strict=True)), strict=True)
+        # Each oracle's scalar search starts from the previous iterate's multiplier (0 at first: its default start).
+        lmos, mults = zip(*(st.oracle(g, nom, guess=mu) for st, g, nom, mu in zip(sets, grads, nominals, mults, strict=True)),
+                          strict=True)
         p = tuple(lm - si for lm, si in zip(lmos, s, strict=True))
         gap = sum(jnp.vdot(pi, gi) for pi, gi in zip(p, grads, strict=True))
         pn = sum(jnp.vdot(pi, pi) for pi in p)
