@@ -96,6 +96,24 @@ def test_oracle_matches_jdrkf_torsion():
     np.testing.assert_allclose(vb, _jd(VBKF(20.0, 20.3, 0.98), m, p, tr), rtol=0, atol=1e-10 * scale)
 
 
+def test_vbkf_nominal_covariance_is_the_authors_joseph_form():
+    """`VBKF(covariance='nominal')` against the oracle of `akf_forward_vb.m` with the nominal R in
+    the covariance (first pass at ρβ, jdrkf's order), identity and torsion y2 episodes, to rounding;
+    the authors' reading of β on the first pass moves the estimates by far less than the
+    covariance form does (< 1e-3 of the state scale)."""
+    for (m, p, tr, args), (a0, b0, rho) in ((_identity(2, 800), (50.0, 50.0, 0.99)), (_torsion("y2", 2, 1000), (20.0, 20.3, 0.98))):
+        z, xs = np.asarray(tr.observations), np.asarray(tr.states)
+        scale = np.abs(xs).max()
+        ours = _jd(VBKF(a0, b0, rho, covariance="nominal"), m, p, tr)
+        np.testing.assert_allclose(orc.oracle_vbkf(*args, z, a0, b0, rho, cov="nominal", first="forgotten"), ours,
+                                   rtol=0, atol=1e-10 * scale)
+        authors = orc.oracle_vbkf(*args, z, a0, b0, rho, cov="nominal", first="previous")
+        assert np.abs(authors - ours).max() < 1e-3 * scale
+        assert np.abs(_jd(VBKF(a0, b0, rho), m, p, tr) - ours).max() > 10 * np.abs(authors - ours).max()
+    with pytest.raises(ValueError, match="covariance must be"):
+        VBKF(covariance="adapted")
+
+
 def test_nominal_covariance_raises_torsion_y2_angle_errors():
     """The cause of li-torsion y2 VBKF x2/x3 (paper 2.609/2.717, ours 1.61/1.85): on the same
     1300-step episodes (the ×100 window is steps 800–1198), the authors' nominal-R Joseph form

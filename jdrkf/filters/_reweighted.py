@@ -43,12 +43,16 @@ def _inflate(chol, w):
     return linalg.symmetrize((chol / w) @ chol.T)
 
 
+def _check_covariance(covariance):
+    if covariance not in ("reweighted", "nominal"):
+        raise ValueError(f"covariance must be 'reweighted' or 'nominal', got {covariance!r}")
+
+
 def _check_static(max_iter, tol, covariance):
     check_positive_int("max_iter", max_iter)
     if not isinstance(tol, int | float) or not tol >= 0:
         raise ValueError(f"tol must be a number >= 0, got {tol!r}")
-    if covariance not in ("reweighted", "nominal"):
-        raise ValueError(f"covariance must be 'reweighted' or 'nominal', got {covariance!r}")
+    _check_covariance(covariance)
 
 
 class IRLSResult(eqx.Module):
@@ -595,6 +599,10 @@ class VBKF(AbstractFilter):
       `λ = β⁻/α`) or `"predicted"` (update `β` first at the predicted mean/covariance).
     - `covariance_in_iterations` (static, default `True`): include `½ diag(W P Wᵀ)` in
       `β` inside the iterations (it always enters the `β` carried to the next step).
+    - `covariance` (static): the posterior covariance of each pass, `"reweighted"`
+      (default; the Joseph form with the adapted `R_k`, `(I − KH)P⁻(I − KH)ᵀ + KR_kKᵀ`, the
+      VB posterior) or `"nominal"` (`K R Kᵀ` with the nominal `R`, as the authors'
+      `akf_forward_vb.m` computes it; see `jdrkf.STKF`'s `covariance`).
     - `throw`, `outputs`: as in `jdrkf.KalmanFilter` (missing channels keep
       their `α`, `β`).
 
@@ -622,6 +630,7 @@ class VBKF(AbstractFilter):
     shape_increment: float = eqx.field(static=True)
     start: str = eqx.field(static=True)
     covariance_in_iterations: bool = eqx.field(static=True)
+    covariance: str = eqx.field(static=True)
 
     def __init__(
         self,
@@ -634,6 +643,7 @@ class VBKF(AbstractFilter):
         shape_increment: float = 0.5,
         start: Literal["scale", "predicted"] = "scale",
         covariance_in_iterations: bool = True,
+        covariance: Covariance = "reweighted",
         throw: bool = True,
         outputs: str | Sequence[str] = DEFAULT_OUTPUTS,
     ):
@@ -646,7 +656,8 @@ class VBKF(AbstractFilter):
         if start not in ("scale", "predicted"):
             raise ValueError(f"start must be 'scale' or 'predicted', got {start!r}")
         self.num_iter, self.fixed_prior, self.shape_increment = num_iter, fixed_prior, float(shape_increment)
-        self.start, self.covariance_in_iterations = start, covariance_in_iterations
+        _check_covariance(covariance)
+        self.start, self.covariance_in_iterations, self.covariance = start, covariance_in_iterations, covariance
         self.throw, self.outputs = throw, outputs
 
     @classmethod
@@ -691,7 +702,8 @@ class VBKF(AbstractFilter):
             chol_s = linalg.cholesky(linalg.symmetrize(h @ pred.cov @ h.T + r_t))
             gain = linalg.cho_solve(chol_s, h @ pred.cov).T
             a = jnp.eye(pred.mean.shape[0], dtype=pred.cov.dtype) - gain @ h
-            cov = linalg.symmetrize(a @ pred.cov @ a.T + gain @ r_t @ gain.T)
+            r_c = r if self.covariance == "nominal" else r_t
+            cov = linalg.symmetrize(a @ pred.cov @ a.T + gain @ r_c @ gain.T)
             return Gaussian(pred.mean + gain @ innov, cov), chol_s
 
         def beta_of(g: Gaussian, with_cov: bool):
