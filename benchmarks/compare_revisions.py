@@ -78,7 +78,7 @@ def child(repeats: int) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--base", required=True, help="the earlier revision (any git revision name)")
+    ap.add_argument("--base", help="the earlier revision (any git revision name; required)")
     ap.add_argument("--head", default="HEAD")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=7)
@@ -88,6 +88,8 @@ def main(argv=None):
     if args.child:
         print(json.dumps(child(args.repeats)))
         return None
+    if args.base is None:
+        ap.error("--base is required")
 
     sys.path.insert(0, HERE)
     from _provenance import cpu_model, loadavg, portable_path
@@ -110,8 +112,8 @@ def main(argv=None):
             for r in range(args.rounds):
                 for label in ("base", "head"):
                     env = dict(os.environ, PYTHONPATH=trees[label])
-                    out = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", "--base", "unused",
-                                          "--repeats", str(args.repeats)], env=env, capture_output=True, text=True, check=True)
+                    out = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", "--repeats", str(args.repeats)],
+                                         env=env, capture_output=True, text=True, check=True)
                     res["times"][label].append(json.loads(out.stdout.strip().splitlines()[-1]))
                     print(f"[{time.time() - t0:6.0f}s] round {r + 1} {label} done", flush=True)
         finally:

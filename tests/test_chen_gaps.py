@@ -14,31 +14,22 @@ tolerances are stated where used.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import benchmark_scripts
+
 from jdrkf import KalmanFilter
 from jdrkf.experiments import chen_fusion as cf
 from jdrkf.filters._fusion import CovarianceIntersection
 
-ROOT = Path(__file__).resolve().parent.parent
 PAPER_CI = (7.9864, 23.0917, 16.7782)  # Table I, CI: MSE x, v, a
 PAPER_KF_A = 20.3734  # Table I, KF: MSE a
 
 
-def _load_oracle():
-    spec = importlib.util.spec_from_file_location("chen_gaps", ROOT / "benchmarks" / "chen_gaps.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-orc = _load_oracle()
+orc = benchmark_scripts.load("chen_gaps")
 
 
 def _episodes(seed, runs, steps):

@@ -19,30 +19,19 @@ statistical margins are stated where used.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import jax.numpy as jnp
 import numpy as np
+import equinox as eqx
 import pytest
 
-import equinox as eqx
+import benchmark_scripts
 
 from jdrkf import BCOTKF, Gaussian, LinearModel
 from jdrkf import em_noise_covariances
 from jdrkf.sets import bcot_worst_case
 
-ROOT = Path(__file__).resolve().parent.parent
 
-
-def _load_oracle():
-    spec = importlib.util.spec_from_file_location("jang_gaps", ROOT / "benchmarks" / "jang_gaps.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-orc = _load_oracle()
+orc = benchmark_scripts.load("jang_gaps")
 
 
 @pytest.fixture(scope="module")

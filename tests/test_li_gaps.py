@@ -16,28 +16,18 @@ the paper's numbers with per-run spreads measured by the benchmark (stated where
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import jax
 import numpy as np
 import pytest
+
+import benchmark_scripts
 
 from jdrkf import KalmanFilter
 from jdrkf.experiments import li_variational as lv
 from jdrkf.filters import STKF_AR1, VBKF
 
-ROOT = Path(__file__).resolve().parent.parent
 
-
-def _load_oracle():
-    spec = importlib.util.spec_from_file_location("li_gaps", ROOT / "benchmarks" / "li_gaps.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-orc = _load_oracle()
+orc = benchmark_scripts.load("li_gaps")
 
 
 def _identity(runs, steps, case="y2", seed=11):

@@ -371,6 +371,7 @@ def _fd(f, x, h):
             ("nu_x", "tau2_x", "nu_y", "tau2_y", "rho_y"),
         ),
         (VBKF(3.0, 2.0, 0.95, 3), ("alpha0", "beta0", "rho")),
+        (VBKF(3.0, 2.0, 0.95, 3, covariance="nominal"), ("alpha0", "beta0", "rho")),
     ],
 )
 def test_gradients_match_finite_differences(flt, fields):

@@ -21,29 +21,19 @@ are stated where used (per-episode standard deviations measured with the benchma
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import benchmark_scripts
+
 from jdrkf import KalmanFilter, WassersteinKF
 from jdrkf.filters import TauKF
 from jdrkf.experiments import wang_ye as wy
 
-ROOT = Path(__file__).resolve().parent.parent
 
-
-def _load_oracle():
-    spec = importlib.util.spec_from_file_location("wang_ye_gaps", ROOT / "benchmarks" / "wang_ye_gaps.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-orc = _load_oracle()
+orc = benchmark_scripts.load("wang_ye_gaps")
 T = 1000
 
 
