@@ -53,8 +53,10 @@ class AbstractAmbiguitySet(eqx.Module):
         return self.oracle(direction, nominal)[0]
 
 
-def warm_start(guess: Float[ArrayLike, ""], lo, default, hi) -> Float[Array, ""]:
-    """Start of a bracketed scalar root search on `(lo, hi)`: `guess` if it is finite and
-    strictly inside, else `default`."""
+def warm_start(guess: Float[ArrayLike, ""] | None, lo, default, hi) -> Float[Array, ""]:
+    """Start of a bracketed scalar root search on `(lo, hi)`: `guess` if it is given, finite
+    and strictly inside, else `default`."""
+    if guess is None:
+        return default
     guess = jnp.asarray(guess, jnp.result_type(default))
     return jnp.where(jnp.isfinite(guess) & (guess > lo) & (guess < hi), guess, default)

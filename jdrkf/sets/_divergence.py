@@ -90,7 +90,7 @@ class KL(AbstractAmbiguitySet):
         # Start right of the root: ½ φ(1 − δ) ≥ c for δ = 1/(4c + 20). Convex and
         # increasing in t on [0, 1/μ_max): Newton decreases monotonically to the root.
         t0 = (1.0 - 1.0 / (4.0 * c + 20.0)) / mu_max
-        start = t0 if guess is None else warm_start(guess, 0.0, t0, 1.0 / mu_max)
+        start = warm_start(guess, 0.0, t0, 1.0 / mu_max)
         t = bracketed_newton(g_and_slope, start, 0.0, 1.0 / mu_max, _NEWTON_MAX_ITER, has_slope=True).x
         rq = r @ q
         cov = linalg.symmetrize((rq / (1.0 - t * mu)) @ rq.T)

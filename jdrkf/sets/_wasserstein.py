@@ -68,7 +68,7 @@ class Wasserstein(AbstractAmbiguitySet):
         # The root lies in [s_lo, s_hi] (the bounds keep all of Tr Σ̂, or only its component along
         # the top direction); h → pole > 0 at the pole 1/(θ d₁), the other end of the bracket.
         pole = jnp.where(rho > 0, 1.0 / (jnp.where(rho > 0, rho, 1.0) * d1), jnp.inf)
-        start = s_hi if guess is None else warm_start(guess, s_lo, s_hi, pole)
+        start = warm_start(guess, s_lo, s_hi, pole)
         s = bracketed_newton(h_and_slope, start, s_lo, pole, _NEWTON_MAX_ITER, has_slope=True).x
         tdiag = 1.0 / (1.0 - rho * s * d)
         t = (v * tdiag) @ v.T
