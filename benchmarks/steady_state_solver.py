@@ -305,7 +305,7 @@ def bench_radii(args, n, m, wd, model, value_fn, jax, jnp, eqx, jdrkf) -> dict:
            "values_finite": bool(np.all(np.isfinite(values)))}
     out["check_ok"] = out["max_rel_diff_vs_single"] is not None and out["max_rel_diff_vs_single"] <= GOAL_RADII_REL
     log(f"   {n}x{m}: {B} radius pairs vmapped: {out['call_s']:.3g} s/call = {out['per_solve_ms'] * 1e3:.3g} µs/solve "
-        f"(compile {out['compile_s']:.1f} s); converged {out['converged']}/{B}, Newton its med/max "
+        f"(compile {out['compile_s']:.1f} s); converged {out['converged']}/{B}, chord steps med/max "
         f"{out['iterations_median']:.0f}/{out['iterations_max']}; max rel Δ vs {k} single solves {out['max_rel_diff_vs_single']}")
     return out
 
@@ -688,7 +688,7 @@ def build_markdown(r) -> str:
               "systems (the faster DPP variant whose values agree with jdrkf to 1e-6). The single solve is the "
               "`jdrkf` column above (informative).", "",
               "| n | m | B | compile s | call s (min) | µs per solve (min) | jdrkf single solve µs | cvxpy DPP ms per solve | "
-              "ratio DPP / vmapped | converged | Newton its med/max | max rel Δ vs single solves (checked) | goal ≥ 100× |",
+              "ratio DPP / vmapped | converged | chord steps med/max | max rel Δ vs single solves (checked) | goal ≥ 100× |",
               "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
         for x in rrows:
             rb, gl = x["radii"], x.get("radii_goal") or {}

@@ -154,9 +154,13 @@ class SteadyStateDRKF(AbstractFilter):
     the worst-case prior `N(x̄⁻, Σ⁻*)`, `filtered` the posterior `Σ*`, and `loglik` is the
     log-density of `y` under `N(Cx̄⁻ + v̂, CΣ⁻*Cᵀ + Σv*)`.
 
-    The solve calls LAPACK (traced under `linalg.lapack_only`). To solve for many models
-    or radii, map with `jax.lax.map`: under `vmap` every solve runs the slowest one's
-    iterations in lockstep (several times slower per solve).
+    The solve calls LAPACK (traced under `linalg.lapack_only`). For many radius pairs on
+    one model, `jax.vmap` over the radii: its batching rule solves the system at a few
+    anchor radii and reaches every pair by chord steps with its anchor's Jacobian
+    (`docs/math/steady_state.md`; per pair 25–110× faster than a single solve in
+    `benchmarks/steady_state_solver.py`). For many
+    models, map with `jax.lax.map`: under `vmap` over models every solve runs the slowest
+    one's iterations in lockstep.
 
     **Arguments:** `radius_x`, `radius_v` (the radii `θx`, `θv` ≥ 0, differentiable;
     `theta_x=`, `theta_v=` are deprecated aliases); `max_iter`

@@ -6,6 +6,8 @@ implicit derivatives."""
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -39,8 +41,9 @@ class SteadyStateDR(eqx.Module):
       stationary pseudo-nominal prior `nominal_prior_cov = A Σ*_ss Aᵀ + Σ̂w`.
     - `value`: `Tr Σ*_ss`, the optimal value of (14).
     - `adjoint`: the multiplier `Λ` of the stationarity constraint (see `SteadyStateDRKF`).
-    - `iterations`: Newton iterations; `residual`: the norm of the optimality system at
-      the solution; `converged`: `residual` small relative to the solution.
+    - `iterations`: Newton iterations (chord steps for a pair solved from an anchor under
+      `vmap` over radii); `residual`: the norm of the optimality system at the solution;
+      `converged`: `residual` small relative to the solution, at a point of the domain.
     """
 
     gain: Float[Array, "n m"]
@@ -85,23 +88,28 @@ def _stationary_residual(a, h, w, v, theta_x, theta_v):
     `Λ = D_x T_x` (the sensitivity of the weighted value to the pseudo-nominal, i.e. the
     multiplier of `Σ̂⁻ = A Σ Aᵀ + Σ̂w`). Inverses are `linalg.psd_inv`, whose
     derivative is two products: the dense Jacobian by `jacfwd` is then a few batched
-    products. `T_x` is shared by the oracle's residual and `Λ`.
+    products. Products are `linalg.matmul`: LAPACK-sized calls under `lapack_only` (the
+    Newton solves), elementwise for small matrices otherwise (the chord steps of
+    `_many_radii`, one residual per radius pair). `T_x` is shared by the oracle's residual and `Λ`.
     """
     n, m = a.shape[0], h.shape[0]
     pack, unpack = _layout(n, m)
     eye_n = jnp.eye(n, dtype=a.dtype)
 
+    mm = linalg.matmul
+
     def residual(x):
         prior, noise, mx, mv, lam = unpack(x)
-        gain = prior @ h.T @ linalg.psd_inv(h @ prior @ h.T + noise)
-        e = eye_n - gain @ h
-        nominal = linalg.symmetrize(a @ (e @ prior) @ a.T) + w
-        weight = eye_n + a.T @ lam @ a
-        dx = e.T @ weight @ e
-        dv = gain.T @ weight @ gain
+        ph = mm(prior, h.T)
+        gain = mm(ph, linalg.psd_inv(mm(h, ph) + noise))
+        e = eye_n - mm(gain, h)
+        nominal = linalg.symmetrize(mm(mm(a, mm(e, prior)), a.T)) + w
+        weight = eye_n + mm(mm(a.T, lam), a)
+        dx = mm(mm(e.T, weight), e)
+        dv = mm(mm(gain.T, weight), gain)
         r_prior, qx, tx = oracle_residual(theta_x, prior, mx, dx, nominal)
         r_noise, qv, _ = oracle_residual(theta_v, noise, mv, dv, v)
-        return pack(r_prior, r_noise, qx, qv, lam - dx @ tx)
+        return pack(r_prior, r_noise, qx, qv, lam - mm(dx, tx))
 
     return residual
 
@@ -162,6 +170,21 @@ def _oracle_step(a, h, w, v, theta_x, theta_v, x):
     return pack(prior, noise, mx, mv, lam)
 
 
+def _in_domain(a, h, x) -> Bool[Array, ""]:
+    """Whether `x` lies on the branch of the convex problem's KKT point: the ball
+    multipliers are positive (negative roots of the sets' scalar equations belong to the
+    minimizing oracle), `I + AᵀΛA`, the multiplier of the Schur inequality of (14), is
+    positive definite, and so are `Σ⁻` and `Σv`. The system has other roots: with an
+    indefinite weight (and a lower value), and — when `Σ̂w` is nearly singular — with an
+    indefinite `Σ⁻` that is self-consistent because `Σ̂⁻ = AΣAᵀ + Σ̂w` inherits the
+    negative eigenvalue of `Σ` (infeasible for (14), with a *higher* "value"). Trial
+    points off this domain are rejected, so a converged solve is a feasible KKT point of
+    the convex problem."""
+    prior, noise, mx, mv, lam = _layout(a.shape[0], h.shape[0])[1](x)
+    weight = jnp.eye(a.shape[0], dtype=a.dtype) + a.T @ lam @ a
+    return (mx > 0) & (mv > 0) & _positive_definite(weight) & _positive_definite(prior) & _positive_definite(noise)
+
+
 def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
     """Solve the optimality system for radii `τ(θx, θv)`, `τ: 0 → 1`. At `τ = 0` the
     initial guess is exact (the nominal steady state and its adjoint); each stage is
@@ -170,20 +193,8 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
     a failure (first try: `τ = 1` directly)."""
     dtype = a.dtype
     zero = jnp.zeros((), dtype)
-    _, unpack = _layout(a.shape[0], h.shape[0])
 
-    # On the branch of the convex problem's KKT point the ball multipliers are positive
-    # (negative roots of the sets' scalar equations belong to the minimizing oracle),
-    # `I + AᵀΛA`, the multiplier of the Schur inequality of (14), is positive definite, and
-    # so are `Σ⁻` and `Σv`. The system has other roots: with an indefinite weight (and a
-    # lower value), and — when `Σ̂w` is nearly singular — with an indefinite `Σ⁻` that is
-    # self-consistent because `Σ̂⁻ = AΣAᵀ + Σ̂w` inherits the negative eigenvalue of `Σ`
-    # (infeasible for (14), with a *higher* "value"). Trial points off this domain are
-    # rejected, so a converged solve is a feasible KKT point of the convex problem.
-    def in_domain(x):
-        prior, noise, mx, mv, lam = unpack(x)
-        weight = jnp.eye(a.shape[0], dtype=dtype) + a.T @ lam @ a
-        return (mx > 0) & (mv > 0) & _positive_definite(weight) & _positive_definite(prior) & _positive_definite(noise)
+    in_domain = functools.partial(_in_domain, a, h)
 
     def cond(c):
         _, tau, dtau, _, _, _ = c
@@ -218,6 +229,125 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
     return x, iters, jnp.where(converged, nr, jnp.inf), converged
 
 
+# Many radius pairs on one system (`vmap` over the radii only): the anchors per radius
+# axis, at most `_ANCHOR_COLUMNS` stacked rows of anchor inverses (their product with the
+# residuals is one matrix product), the chord steps allowed before a pair falls back to
+# the continuation, and the batch size below which plain `vmap` of it is used.
+_MAX_ANCHORS_PER_AXIS = 4
+_ANCHOR_COLUMNS = 512
+_CHORD_STEPS = 60
+
+
+def _anchors_per_axis(unknowns: int) -> int:
+    return max(1, min(_MAX_ANCHORS_PER_AXIS, int((_ANCHOR_COLUMNS / unknowns) ** 0.5)))
+
+
+def _cells(t, valid, g):
+    """Centres of `g` equal cells over the range of the valid radii `t`, and each radius's cell."""
+    lo = jnp.min(jnp.where(valid, t, jnp.inf))
+    hi = jnp.max(jnp.where(valid, t, -jnp.inf))
+    lo = jnp.where(jnp.isfinite(lo), lo, 0.0)
+    width = (jnp.maximum(jnp.where(jnp.isfinite(hi), hi, 0.0), lo) - lo) / g
+    centres = lo + width * (jnp.arange(g, dtype=t.dtype) + 0.5)
+    cell = jnp.floor((t - lo) / jnp.where(width > 0, width, 1.0))
+    return centres, jnp.clip(jnp.where(jnp.isfinite(cell), cell, 0), 0, g - 1).astype(jnp.int32)
+
+
+def _many_radii(a, h, w, v, theta_x, theta_v, max_iter):
+    """`_continuation` for a batch of radius pairs `(θx_b, θv_b)` on one system.
+
+    The valid radii's range is cut into `g × g` cells; the continuation solves the system
+    at the cell centres (the anchors `z_k`), whose Jacobians `J_k` give each pair a start
+    on the tangent, `z_k − J_k⁻¹ ∂F/∂θ (θ_b − θ_k)`, and chord steps
+    `z ← z − J_k⁻¹ F(z; θ_b)` — one residual per step and pair and one matrix product for
+    the batch, where Newton under `vmap` forms and factorizes a Jacobian per pair and
+    runs the slowest pair's continuation, sweeps and line search for every pair. A pair
+    counts as solved under the continuation's own test (residual at tolerance at a point of
+    the domain); pairs that are not (a chord that stalls or leaves the domain) are solved
+    by the continuation, under `vmap`, in a branch taken only when there are such pairs.
+    Returns the continuation's outputs, with the chord steps as the iteration count."""
+    n, m = a.shape[0], h.shape[0]
+    dtype = a.dtype
+    unknowns = n * (n + 1) + m * (m + 1) // 2 + 2
+    g = _anchors_per_axis(unknowns)
+    size = theta_x.shape[0]
+    continuation = jax.vmap(lambda tx, tv: _continuation(a, h, w, v, tx, tv, max_iter))
+    valid = (theta_x >= 0) & (theta_v >= 0) & jnp.isfinite(theta_x) & jnp.isfinite(theta_v)
+    (cx, kx), (cv, kv) = _cells(theta_x, valid, g), _cells(theta_v, valid, g)
+    ax, av = jnp.repeat(cx, g), jnp.tile(cv, g)
+    cell = kx * g + kv
+    z, *_ = continuation(ax, av)
+
+    def derivatives(z, tx, tv):
+        return jax.jacfwd(lambda z, tx, tv: _stationary_residual(a, h, w, v, tx, tv)(z), argnums=(0, 1, 2))(z, tx, tv)
+
+    with linalg.lapack_only():
+        jac, dfx, dfv = jax.vmap(derivatives)(z, ax, av)
+    inverse = jnp.linalg.inv(jac)
+    tangent_x, tangent_v = jnp.einsum("kij,kj->ki", inverse, dfx), jnp.einsum("kij,kj->ki", inverse, dfv)
+    x = z[cell] - tangent_x[cell] * (theta_x - ax[cell])[:, None] - tangent_v[cell] * (theta_v - av[cell])[:, None]
+    stacked = inverse.reshape(g * g * unknowns, unknowns)
+    residual = jax.vmap(lambda z, tx, tv: _stationary_residual(a, h, w, v, tx, tv)(z))
+    rtol = default_rtol(dtype)
+
+    def status(x, r):
+        nr = jnp.linalg.norm(r, axis=1)
+        return nr, nr <= rtol * (1.0 + jnp.linalg.norm(x, axis=1))
+
+    def moving(x, r):
+        nr, done = status(x, r)
+        return valid & ~done & jnp.isfinite(nr)
+
+    def cond(c):
+        x, r, k, _ = c
+        return (k < _CHORD_STEPS) & jnp.any(moving(x, r))
+
+    def body(c):
+        x, r, k, steps = c
+        move = moving(x, r)
+        step = jnp.take_along_axis((r @ stacked.T).reshape(size, g * g, unknowns), cell[:, None, None], axis=1)[:, 0]
+        x = jnp.where(move[:, None], x - step, x)
+        return x, residual(x, theta_x, theta_v), k + 1, steps + move.astype(jnp.int32)
+
+    x, r, _, steps = lax.while_loop(cond, body, (x, residual(x, theta_x, theta_v), jnp.zeros((), jnp.int32),
+                                                 jnp.zeros(size, jnp.int32)))
+    nr, done = status(x, r)
+    ok = valid & done & jax.vmap(functools.partial(_in_domain, a, h))(x)
+    chorded = (x, steps, jnp.where(ok, nr, jnp.inf), ok)
+    need = valid & ~ok
+
+    def rescue(_):
+        with linalg.lapack_only():
+            xs, ks, nrs, oks = continuation(theta_x, theta_v)
+        pick = lambda fallback, mine: jnp.where(need.reshape(need.shape + (1,) * (mine.ndim - 1)), fallback, mine)  # noqa: E731
+        return pick(xs, x), pick(ks.astype(jnp.int32), steps), pick(nrs, chorded[2]), pick(oks, ok)
+
+    return lax.cond(jnp.any(need), rescue, lambda _: chorded, None)
+
+
+def _radii_solver(max_iter: int):
+    """`_continuation` at fixed `max_iter`, batched by `_many_radii` under `vmap` over the
+    radii alone (at least four pairs per anchor); any other batching maps the continuation."""
+
+    @jax.custom_batching.custom_vmap
+    def solve(a, h, w, v, theta_x, theta_v):
+        x, k, nr, ok = _continuation(a, h, w, v, theta_x, theta_v, max_iter)
+        return x, k.astype(jnp.int32), nr, ok
+
+    @solve.def_vmap
+    def _(size, batched, a, h, w, v, theta_x, theta_v):
+        unknowns = a.shape[-1] * (a.shape[-1] + 1) + h.shape[-2] * (h.shape[-2] + 1) // 2 + 2
+        if any(batched[:4]) or size < 4 * _anchors_per_axis(unknowns) ** 2:
+            with linalg.lapack_only():
+                out = jax.vmap(solve.fun, in_axes=tuple(0 if b else None for b in batched))(a, h, w, v, theta_x, theta_v)
+        else:
+            tx, tv = (t if b else jnp.broadcast_to(t, (size,)) for t, b in zip((theta_x, theta_v), batched[4:], strict=True))
+            out = _many_radii(a, h, w, v, tx, tv, max_iter)
+        return out, (True,) * 4
+
+    return solve
+
+
 @eqx.filter_jit
 def _steady_state(a, h, w, v, theta_x, theta_v, max_iter):
     with linalg.lapack_only():
@@ -229,7 +359,7 @@ def _steady_state_impl(a, h, w, v, theta_x, theta_v, max_iter):
 
     def solve(guess):
         del guess
-        x, k, nr, ok = _continuation(*jax.tree.map(lax.stop_gradient, params), max_iter)
+        x, k, nr, ok = _radii_solver(max_iter)(*jax.tree.map(lax.stop_gradient, params))
         return x, (k, nr, ok)
 
     guess = _initial_guess(*jax.tree.map(lax.stop_gradient, (a, h, w, v)))

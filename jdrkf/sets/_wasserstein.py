@@ -86,8 +86,9 @@ def oracle_residual(rho, cov, s, direction, nominal):
     inactive set, `Tr D = 0`) and `T = (I − θsD)⁻¹` (`linalg.psd_inv`: its derivative is
     products, so Newton and implicit-derivative Jacobians batch)."""
     eye = jnp.eye(nominal.shape[-1], dtype=nominal.dtype)
+    mm = linalg.matmul
     t = linalg.psd_inv(eye - rho * s * direction)  # I − θsD ≻ 0 in the bracket
-    dt = direction @ t
-    q = s * s * jnp.trace(nominal @ dt @ dt) - 1.0
+    dt = mm(direction, t)
+    q = s * s * jnp.sum(nominal * mm(dt, dt).T) - 1.0
     active = jnp.trace(direction) > 0
-    return cov - linalg.symmetrize(t @ nominal @ t), jnp.where(active, q, s - 1.0), t
+    return cov - linalg.symmetrize(mm(mm(t, nominal), t)), jnp.where(active, q, s - 1.0), t
