@@ -232,13 +232,15 @@ def _continuation(a, h, w, v, theta_x, theta_v, max_iter):
 # Many radius pairs on one system (`vmap` over the radii only): the anchors per radius
 # axis, at most `_ANCHOR_COLUMNS` stacked rows of anchor inverses (their product with the
 # residuals is one matrix product), the chord steps allowed before a pair falls back to
-# the continuation, and the batch size below which plain `vmap` of it is used.
+# the continuation, and the pairs per anchor below which plain `vmap` of it is used.
 _MAX_ANCHORS_PER_AXIS = 4
 _ANCHOR_COLUMNS = 512
 _CHORD_STEPS = 60
+_PAIRS_PER_ANCHOR = 4
 
 
-def _anchors_per_axis(unknowns: int) -> int:
+def _anchors_per_axis(n: int, m: int) -> int:
+    unknowns = n * (n + 1) + m * (m + 1) // 2 + 2  # the length of `_layout`'s vector
     return max(1, min(_MAX_ANCHORS_PER_AXIS, int((_ANCHOR_COLUMNS / unknowns) ** 0.5)))
 
 
@@ -266,17 +268,15 @@ def _many_radii(a, h, w, v, theta_x, theta_v, max_iter):
     the domain); pairs that are not (a chord that stalls or leaves the domain) are solved
     by the continuation, under `vmap`, in a branch taken only when there are such pairs.
     Returns the continuation's outputs, with the chord steps as the iteration count."""
-    n, m = a.shape[0], h.shape[0]
     dtype = a.dtype
-    unknowns = n * (n + 1) + m * (m + 1) // 2 + 2
-    g = _anchors_per_axis(unknowns)
+    g = _anchors_per_axis(a.shape[0], h.shape[0])
     size = theta_x.shape[0]
     continuation = jax.vmap(lambda tx, tv: _continuation(a, h, w, v, tx, tv, max_iter))
     valid = (theta_x >= 0) & (theta_v >= 0) & jnp.isfinite(theta_x) & jnp.isfinite(theta_v)
     (cx, kx), (cv, kv) = _cells(theta_x, valid, g), _cells(theta_v, valid, g)
     ax, av = jnp.repeat(cx, g), jnp.tile(cv, g)
     cell = kx * g + kv
-    z, *_ = continuation(ax, av)
+    z, *_ = continuation(ax, av)  # unrolled small-matrix code outside `lapack_only`: faster for n ≤ 6
 
     def derivatives(z, tx, tv):
         return jax.jacfwd(lambda z, tx, tv: _stationary_residual(a, h, w, v, tx, tv)(z), argnums=(0, 1, 2))(z, tx, tv)
@@ -286,6 +286,7 @@ def _many_radii(a, h, w, v, theta_x, theta_v, max_iter):
     inverse = jnp.linalg.inv(jac)
     tangent_x, tangent_v = jnp.einsum("kij,kj->ki", inverse, dfx), jnp.einsum("kij,kj->ki", inverse, dfv)
     x = z[cell] - tangent_x[cell] * (theta_x - ax[cell])[:, None] - tangent_v[cell] * (theta_v - av[cell])[:, None]
+    unknowns = z.shape[1]
     stacked = inverse.reshape(g * g * unknowns, unknowns)
     residual = jax.vmap(lambda z, tx, tv: _stationary_residual(a, h, w, v, tx, tv)(z))
     rtol = default_rtol(dtype)
@@ -327,7 +328,8 @@ def _many_radii(a, h, w, v, theta_x, theta_v, max_iter):
 
 def _radii_solver(max_iter: int):
     """`_continuation` at fixed `max_iter`, batched by `_many_radii` under `vmap` over the
-    radii alone (at least four pairs per anchor); any other batching maps the continuation."""
+    radii alone (at least `_PAIRS_PER_ANCHOR` pairs per anchor); any other batching maps the
+    continuation."""
 
     @jax.custom_batching.custom_vmap
     def solve(a, h, w, v, theta_x, theta_v):
@@ -336,8 +338,7 @@ def _radii_solver(max_iter: int):
 
     @solve.def_vmap
     def _(size, batched, a, h, w, v, theta_x, theta_v):
-        unknowns = a.shape[-1] * (a.shape[-1] + 1) + h.shape[-2] * (h.shape[-2] + 1) // 2 + 2
-        if any(batched[:4]) or size < 4 * _anchors_per_axis(unknowns) ** 2:
+        if any(batched[:4]) or size < _PAIRS_PER_ANCHOR * _anchors_per_axis(a.shape[-1], h.shape[-2]) ** 2:
             with linalg.lapack_only():
                 out = jax.vmap(solve.fun, in_axes=tuple(0 if b else None for b in batched))(a, h, w, v, theta_x, theta_v)
         else:
