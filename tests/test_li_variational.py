@@ -84,9 +84,13 @@ def test_identity_report():
     assert 1.0 <= iters[("STKF", "iterations@y1")].mean <= 2.0  # the authors' cap of 2 passes
     assert 1.0 < iters[("STKF-AR1", "iterations@y2")].mean <= 4.0  # cap 4; the adaptive filter iterates
     mean = {(r.filter, r.metric): r.mean for r in rep.rows}
-    # Proposition 2: with the reweighted posterior covariance STKF-AR1 (ν_r = 1/(1 − ρ)) is the VBKF.
+    # Table III's ties: with the authors' nominal-covariance form in every filter, STKF-AR1
+    # (ν_r = 1/(1 − ρ)) is the VBKF and the STKF (≤ 2 passes) is within 1% of the VBKF-fixed (4);
+    # the reweighted form moves STKF-AR1 off the tie.
     for state in (1, 2):
-        assert mean[("STKF-AR1 (reweighted cov)", f"rmse_x{state}@y2")] == pytest.approx(mean[("VBKF", f"rmse_x{state}@y2")], rel=1e-4)
+        assert mean[("STKF-AR1", f"rmse_x{state}@y2")] == pytest.approx(mean[("VBKF", f"rmse_x{state}@y2")], rel=1e-4)
+        assert mean[("STKF", f"rmse_x{state}@y1")] == pytest.approx(mean[("VBKF-fixed", f"rmse_x{state}@y1")], rel=1e-2)
+    assert mean[("STKF-AR1 (reweighted cov)", "rmse_x1@y2")] != pytest.approx(mean[("VBKF", "rmse_x1@y2")], rel=1e-3)
     # Case 1 (outliers): the robust filters beat the KF on position.
     assert mean[("STKF", "rmse_x1@y1")] < mean[("KF", "rmse_x1@y1")]
     assert mean[("VBKF-fixed", "rmse_x1@y1")] < mean[("KF", "rmse_x1@y1")]
