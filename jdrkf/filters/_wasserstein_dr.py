@@ -157,7 +157,7 @@ class SteadyStateDRKF(AbstractFilter):
     The solve calls LAPACK (traced under `linalg.lapack_only`). For many radius pairs on
     one model, `jax.vmap` over the radii: its batching rule solves the system at a few
     anchor radii and reaches every pair by chord steps with its anchor's Jacobian
-    (`docs/math/steady_state.md`; per pair 25–110× faster than a single solve in
+    (`docs/math/steady_state.md`; per pair 18–130× faster than a single solve in
     `benchmarks/steady_state_solver.py`). For many
     models, map with `jax.lax.map`: under `vmap` over models every solve runs the slowest
     one's iterations in lockstep.
