@@ -8,6 +8,8 @@
 # script is skipped when less than 30 s are left. Logs: $LOG_DIR (default a temporary folder),
 # one per script, and a summary line per script on stdout. PLATFORM=cpu and QUICK=1 (every
 # script's --quick, results under $OUT_DIR) smoke-test this runner on a machine without a GPU.
+# ONLY="NAME ..." runs only the named scripts (in this file's order), e.g. to spend a short
+# device lease on the figures not yet recorded.
 set -u
 cd "$(dirname "$0")/.."
 budget=${1:-3600}
@@ -21,6 +23,7 @@ if [[ "${QUICK:-0}" == 1 ]]; then quick=(--quick); fi
 
 bench() {  # bench NAME CAP_S ARGS...: python benchmarks/NAME.py --platform ... ARGS
     local name=$1 cap=$2; shift 2
+    if [[ -n "${ONLY:-}" && " $ONLY " != *" $name "* ]]; then return; fi
     local left=$(( deadline - $(date +%s) ))
     if (( left < 30 )); then
         echo "$name: skipped (budget spent)"
@@ -39,7 +42,7 @@ bench particle_filter 180 --sis
 bench wasserstein_solver 180 --no-cvxpy --no-profile
 # The rest: the same scripts as on the CPU, smaller where cvxpy (CPU) dominates.
 bench steady_state_solver 180 --no-grad --instances 3 --instances-large 2
-bench parallel_kf 150 --repeats 3
+bench parallel_kf 150 --T 100 1000 10000 --repeats 3
 bench call_floor 60
 bench marginal_solver 120 --instances 5
 bench square_root 120 --systems 1
