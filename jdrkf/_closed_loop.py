@@ -23,7 +23,7 @@ from ._models import LinearModel
 from ._noise import AbstractNoise
 from ._simulate import check_law
 from ._validation import as_float_array, check_shape
-from .filters._base import RESULTS, AbstractFilter
+from .filters._base import RESULTS, AbstractFilter, raise_if_failed
 
 
 @jax.jit
@@ -323,6 +323,4 @@ def _closed_loop(key, flt, model, prior, controller, reference, true_model, x0_l
         process_noise=w,
         measurement_noise=v,
     )
-    if flt.throw:
-        res = result.error_if(res, result != RESULTS.successful)
-    return res
+    return raise_if_failed(res, result) if flt.throw else res

@@ -211,3 +211,43 @@ def test_steady_state_solve_not_converged_for_invalid_radius():
     model, _, _ = _linear()
     solve = jax.jit(lambda p: jdrkf.SteadyStateDRKF(p, 0.05).solve(model).converged)
     assert not bool(solve(-0.1))
+
+
+@pytest.fixture
+def swallowed_raise(monkeypatch):
+    """A runtime that swallows the check's exception (seen in a GPU benchmark process, where
+    `throw=True` did not raise): the check returns its token unchanged."""
+    monkeypatch.setattr(type(OK), "error_if", lambda self, token, pred: token)
+
+
+@pytest.mark.parametrize("kind", ["filter", "smoother", "parallel", "closed_loop"])
+def test_swallowed_raise_gives_nan_outputs_and_the_code(swallowed_raise, kind):
+    """If the raise of `throw=True` does not surface, a failed call's float outputs are NaN (not
+    plausible numbers; under `vmap` every run's, as the raise would stop the whole call) and
+    `result` holds the codes; a successful call is unchanged."""
+    model, prior, ys = _linear()
+    ys2 = np.stack([ys, ys])
+    flt = lambda r: jdrkf.DRKF(state_set=Wasserstein(r), noise_set=Wasserstein(r))  # noqa: E731
+    if kind == "filter":
+        run = lambda r: jax.vmap(flt(r), in_axes=(None, None, 0))(model, prior, ys2)  # noqa: E731
+    elif kind == "smoother":
+        run = lambda r: jax.vmap(jdrkf.RTSSmoother(flt(r)), in_axes=(None, None, 0))(model, prior, ys2)  # noqa: E731
+    elif kind == "parallel":  # a NaN observation without a mask is its failure
+        bad = ys2.copy()
+        bad[1, 2, 0] = np.nan
+        run = lambda r: jax.vmap(jdrkf.ParallelKalmanFilter(), in_axes=(None, None, 0))(  # noqa: E731
+            model, prior, jnp.where(r < 0, jnp.asarray(bad), jnp.asarray(ys2)))
+    else:
+        model = jdrkf.LinearModel(F=model.F, H=model.H, Q=model.Q, R=model.R, B=np.array([[0.0], [1.0]]))
+
+        def run(r):
+            return jdrkf.closed_loop(jax.random.key(0), flt(r), model, prior, lambda x, ref: -x[1:], jnp.zeros((6, 2)))
+    good, failed = jax.jit(run)(0.1), jax.jit(run)(-0.1)
+    floats = lambda out: [x for x in jax.tree.leaves(out) if jnp.issubdtype(x.dtype, jnp.inexact)]  # noqa: E731
+    assert all(np.isfinite(np.asarray(x)).all() for x in floats(good))
+    assert np.all(np.asarray(good.result._value) == 0)
+    codes = np.atleast_1d(np.asarray(failed.result._value))
+    assert np.any(codes != 0)
+    assert all(np.isnan(np.asarray(x)).all() for x in floats(failed))
+    if kind == "parallel":  # only the second run failed
+        assert codes[0] == 0

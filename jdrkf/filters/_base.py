@@ -152,8 +152,9 @@ class AbstractFilter(eqx.Module):
     `__call__` scans `step` over the observations with `lax.scan`.
 
     `throw` (static, keyword, default `True`): if `True`, a failed run raises through `eqx.error_if` (under
-    `vmap`: if any run fails). Set `throw=False` for Monte Carlo sweeps and inspect
-    `FilterResult.result` instead.
+    `vmap`: if any run fails); should a runtime swallow that exception, the call's float
+    outputs are NaN and `result` holds the codes. Set `throw=False` for Monte Carlo sweeps and
+    inspect `FilterResult.result` instead.
 
     `outputs` (static, keyword): the `FilterResult` fields a call fills, `"all"` or a
     sequence of names (default `("filtered_means", "filtered_covariances",
@@ -284,13 +285,24 @@ class AbstractFilter(eqx.Module):
         result = RESULTS.where(nan, RESULTS.nan_observation, result)
         outs["marginal_loglik"] = loglik
         res = FilterResult(**{name: outs.get(name) for name in OUTPUTS}, result=result)
-        if self.throw:
-            # Every float output is multiplied by a checked 1, so that the check survives
-            # whatever the caller keeps. (Passing the outputs themselves through the check's
-            # conditional costs a serial copy of each: XLA moves vmap's transpose into it.)
-            one = result.error_if(jnp.ones((), prior.mean.dtype), result != RESULTS.successful)
-            res = jax.tree.map(lambda x: x * one if jnp.issubdtype(x.dtype, jnp.inexact) else x, res)
-        return res
+        return raise_if_failed(res, result) if self.throw else res
+
+
+def raise_if_failed(tree: PyTree, result: RESULTS) -> PyTree:
+    """`throw=True`'s check: raise (through `eqx.error_if`) if `result` is not successful.
+
+    Every float leaf of `tree` is multiplied by a checked gate, `where(ok, checked 1, NaN)`,
+    so that the check survives whatever the caller keeps. (Passing the leaves themselves
+    through the check's conditional costs a serial copy of each: XLA moves vmap's transpose
+    into it.) The NaN branch covers a runtime that swallows the callback's exception instead
+    of raising it: the floats are then NaN, never plausible numbers, and `result` still
+    holds the codes. Under `vmap`, `ok` means every run succeeded (as the raise stops the
+    whole call), so the gate stays unbatched and shared covariances stay shared.
+    """
+    ok = eqx.internal.unvmap_all(result == RESULTS.successful)
+    one = result.error_if(jnp.ones(()), ~ok)
+    gate = jnp.where(ok, one, jnp.nan)
+    return jax.tree.map(lambda x: x * gate.astype(x.dtype) if jnp.issubdtype(x.dtype, jnp.inexact) else x, tree)
 
 
 def with_outputs(flt: AbstractFilter, outputs: str | Sequence[str]) -> AbstractFilter:

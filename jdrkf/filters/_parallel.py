@@ -27,6 +27,7 @@ from ._base import (
     AbstractFilter,
     FilterResult,
     StepOutput,
+    raise_if_failed,
 )
 from ._kalman import predict, update
 from ._smoother import NEEDED_OUTPUTS, SmootherResult, rts_backward
@@ -160,9 +161,7 @@ class ParallelKalmanFilter(AbstractFilter):
         res = _parallel_filter(model, prior, ys, inputs, observed)
         outs = {name: res[name] if name in self.outputs else None for name in OUTPUTS}
         out = FilterResult(**outs, result=res["result"])
-        if self.throw:
-            out = out.result.error_if(out, out.result != RESULTS.successful)
-        return out
+        return raise_if_failed(out, out.result) if self.throw else out
 
 
 @jax.jit
@@ -253,9 +252,7 @@ def parallel_smooth(
     else:
         with jax.default_matmul_precision("highest"):  # as in filter calls: no TF32 on GPUs
             out = _parallel_backward(model, prior, res)
-    if throw:
-        out = out.result.error_if(out, out.result != RESULTS.successful)
-    return out
+    return raise_if_failed(out, out.result) if throw else out
 
 
 @jax.jit

@@ -15,7 +15,7 @@ from .._gaussian import Gaussian
 from .._models import LinearModel
 from .._multisensor import MultiSensorModel
 from .._validation import psd_rtol
-from ._base import RESULTS, AbstractFilter, FilterResult, with_outputs
+from ._base import RESULTS, AbstractFilter, FilterResult, raise_if_failed, with_outputs
 from ._dr_particle import DRParticleFilter
 from ._particle import BootstrapPF
 from ._unscented import EnsembleKF
@@ -216,9 +216,7 @@ class RTSSmoother(eqx.Module):
         _check_model(model)
         flt = with_outputs(self.filter, tuple(set(self.filter.outputs) | set(NEEDED_OUTPUTS)))
         res = rts_backward(model, prior, flt(model, prior, ys, key, inputs=inputs, observed=observed))
-        if self.filter.throw:
-            res = res.result.error_if(res, res.result != RESULTS.successful)
-        return res
+        return raise_if_failed(res, res.result) if self.filter.throw else res
 
 
 def smooth(
