@@ -186,13 +186,14 @@ def newton(
     return NewtonResult(unravel(v), k, nr, met)
 
 
-def chord(residual: Callable, x0: Any, jacobian: Callable | None, max_steps: int):
+def chord(residual: Callable, x0: Any, jacobian: Callable | None, max_steps: int, ftol: float = 0.0):
     """Chord (simplified Newton) iterations `x ← x − J(x₀)⁻¹ F(x)` with one dense Jacobian
     (`jacobian(x₀)`, or `jax.jacfwd` of the flattened residual when `None`), LU-factorized
     once. Near a regular root the contraction factor is about the start's error, so a
     few steps reach round-off. A step is taken only if it decreases `‖F‖`, and the loop
-    stops once a step decreases it by less than half (or after `max_steps`). Returns the
-    last accepted iterate, its residual and the number of steps taken."""
+    stops once a step decreases it by less than half, once `‖F‖₂ ≤ ftol` (absolute;
+    default 0: round-off), or after `max_steps`. Returns the last accepted iterate, its
+    residual and the number of steps taken."""
     flat0, unravel = ravel_pytree(x0)
 
     def res(v):
@@ -211,7 +212,8 @@ def chord(residual: Callable, x0: Any, jacobian: Callable | None, max_steps: int
         norm, norm_new = jnp.linalg.norm(r), jnp.linalg.norm(r_new)
         better = jnp.all(jnp.isfinite(r_new)) & (norm_new < norm)
         keep = lambda a, b: jnp.where(better, a, b)  # noqa: E731
-        return keep(v_new, v), keep(r_new, r), k + better.astype(k.dtype), better & (norm_new < 0.5 * norm)
+        go_on = better & (norm_new < 0.5 * norm) & (norm_new > ftol)
+        return keep(v_new, v), keep(r_new, r), k + better.astype(k.dtype), go_on
 
     v, r, k, _ = lax.while_loop(cond, body, (flat0, res(flat0), jnp.zeros((), int), jnp.ones((), bool)))
     return unravel(v), unravel(r), k

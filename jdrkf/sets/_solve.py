@@ -24,6 +24,10 @@ from ._wasserstein import Wasserstein
 # Frank–Wolfe stops at this relative gap (or `rtol` if looser); the chord iterations take over.
 _START_RTOL = 1e-5
 _CHORD_MAX_STEPS = 30
+# The chord steps stop once the residual's 2-norm is below this fraction of `rtol`
+# (absolute, so that every multiplier equation is then within `rtol / 100` of zero, as the
+# certificate requires), or at round-off.
+_CHORD_FTOL_FRACTION = 1e-2
 _NEWTON_MAX_STEPS = 30
 
 
@@ -278,7 +282,7 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
     The optimum is the fixed point `Σ = LMO(∇f(Σ))` of each block (first-order optimality of the concave maximization),
     written as the smooth system `_reduced_residual` in the gain `K` and the multipliers.
     Forward: Frank–Wolfe to a relative gap `max(rtol, _START_RTOL)`, then chord steps on
-    that system to round-off (`chord`; the Jacobian in closed form for two
+    that system to an absolute residual of `rtol / 100` or round-off (`chord`; the Jacobian in closed form for two
     Wasserstein balls, `make_jacobian`, else `jax.jacfwd`); if the chord steps stop short
     of `rtol`, damped Newton (`newton`, a fresh Jacobian each step). Derivatives: the implicit function theorem on the same system
     (`lax.custom_root`); the blocks are smooth functions of its solution.
@@ -297,7 +301,7 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
         s, iters, mults = _frank_wolfe(obj.fg, sets_, noms_, max(rtol, _START_RTOL), max_iter)
         jacobian = None if make_jacobian is None else make_jacobian(*p_, sets_, noms_)
         residual = _reduced_residual(obj, sets_, noms_)
-        x, r, steps = chord(residual, (obj.gain(s), mults), jacobian, _CHORD_MAX_STEPS)
+        x, r, steps = chord(residual, (obj.gain(s), mults), jacobian, _CHORD_MAX_STEPS, ftol=_CHORD_FTOL_FRACTION * rtol)
 
         def damped(x):
             # The chord steps failed to reach the tolerance: the start lies outside their
