@@ -114,10 +114,13 @@ def check_platform(name: str) -> None:
 
 
 def device_summary(jax) -> str:
-    """The devices JAX computes on, e.g. 'cpu (1 device)' or 'gpu: NVIDIA H100 80GB HBM3 (1 device)'."""
+    """The devices JAX computes on and the platforms it was limited to, e.g. 'cpu (1 device;
+    JAX_PLATFORMS=cpu)' or 'gpu: NVIDIA H100 80GB HBM3 (1 device; JAX_PLATFORMS=cuda)'."""
     devs = jax.devices()
     kind = devs[0].device_kind if devs[0].platform != "cpu" else ""
-    return f"{devs[0].platform}{': ' + kind if kind else ''} ({len(devs)} device{'s' if len(devs) > 1 else ''})"
+    platforms = os.environ.get("JAX_PLATFORMS")
+    return (f"{devs[0].platform}{': ' + kind if kind else ''} ({len(devs)} device{'s' if len(devs) > 1 else ''}"
+            f"{'; JAX_PLATFORMS=' + platforms if platforms else ''})")
 
 
 def write_results(res: dict, stem: str, render, started: tuple[float, float], packages=("jax", "jaxlib", "numpy", "scipy", "jdrkf")) -> str:

@@ -447,21 +447,28 @@ def run_dr(args, dtype, model, prior, tol) -> dict:
         entry["ok"] = entry["max_abs_diff_means"] <= tol * max(1.0, float(np.max(np.abs(np.asarray(outs["a"].filtered_means)))))
         del outs
         bad = tuple(jnp.asarray(-DR_THETA, dtype) for _ in range(k))
-        raised = {}
-        for v in "bc":
+        plain_fn = jax.jit(lambda r, ys: jax.vmap(make(*r), in_axes=(None, None, 0))(model, prior, ys))
+        raised, outcome = {}, {}
+        # (b) and (c) are the ahead-of-time builds; a plain jitted call of the same bad radii
+        # (no ahead-of-time build) is a diagnostic. Each outcome is recorded: the exception
+        # (class and the start of its message) or, when none was raised, the run's result
+        # codes and whether its means are finite (a swallowed raise leaves NaN means).
+        for v, fn in (("b", lambda: call("b", bad)), ("c", lambda: call("c", bad)), ("plain_jit", lambda: plain_fn(bad, ys))):
             try:
-                jax.block_until_ready(call(v, bad))
+                out = jax.block_until_ready(fn())
                 raised[v] = ""
+                outcome[v] = (f"no exception; result codes {sorted(set(np.asarray(out.result._value).ravel().tolist()))}, "
+                              f"means finite {bool(np.isfinite(np.asarray(out.filtered_means)).all())}")
+                del out
             except Exception as e:  # noqa: BLE001 (the filter's error, whatever its class)
                 raised[v] = str(e)
+                text = " ".join(str(e).split())
+                outcome[v] = type(e).__name__ + (" carrying the invalid-hyper-parameter message" if "hyper-parameter" in text
+                                                 else f" ending: ...{text[-200:]}")
         b_flags = "hyper-parameter" in raised["b"]
         c_flags = "hyper-parameter" in raised["c"]
-        try:  # the same bad radii through a plain jitted call (no ahead-of-time build): diagnostic only
-            jax.block_until_ready(jax.jit(lambda r, ys: jax.vmap(make(*r), in_axes=(None, None, 0))(model, prior, ys))(bad, ys))
-            plain = ""
-        except Exception as e:  # noqa: BLE001
-            plain = str(e)
-        entry["negative_radius_flagged"] = {"b": b_flags, "c": c_flags, "plain_jit": "hyper-parameter" in plain}
+        entry["negative_radius_flagged"] = {"b": b_flags, "c": c_flags, "plain_jit": "hyper-parameter" in raised["plain_jit"]}
+        entry["negative_radius_outcome"] = outcome
         entry["ok"] = bool(entry["ok"] and b_flags and not c_flags)
         checks.append(entry)
         log(f"[{dtype}] DR {name}: means diff {entry['max_abs_diff_means']:.3g}, θ<0 flagged by (b) {b_flags}, "
@@ -574,6 +581,10 @@ def build_markdown(result) -> str:
             flags = ck["negative_radius_flagged"]
             lines.append(f"| {ck['dtype']} | {ck['vs']}: max abs diff {ck['max_abs_diff_means']:.2e} | "
                          f"{yn(flags['b'])} / {yn(flags['c'])} | {yn(flags.get('plain_jit'))} | {yn(ck['ok'])} |")
+        outcomes = [(ck["vs"].split(":")[0], v, o) for ck in dr["checks"] for v, o in ck.get("negative_radius_outcome", {}).items()]
+        if outcomes:
+            lines += ["", "What the θ = −0.1 calls returned (build: outcome):", ""]
+            lines += [f"- {name}, {v}: {o.replace('|', '/')}" for name, v, o in outcomes]
     return "\n".join(lines) + "\n"
 
 
