@@ -646,7 +646,10 @@ def run_parent(args) -> int:
     print(md)
     log(f"wrote {stem}.json and {stem}.md ({result['wall_s']:.0f} s)")
     if not result["checks_ok"]:
-        log("ERROR: implementations disagree beyond tolerance (see checks)")
+        failed = [f"{c['dtype']}: {ck['vs']}" for c in children for ck in c["checks"] if not ck["ok"]]
+        failed += [f"{c['dtype']}: DR rows, {ck['vs']} and the θ < 0 calls"
+                   for c in children if c.get("dr") for ck in c["dr"]["checks"] if not ck["ok"]]
+        log("ERROR: checks failed (see the checks tables): " + "; ".join(failed))
         return 1
     return 0
 
