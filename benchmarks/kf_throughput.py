@@ -451,7 +451,7 @@ def run_dr(args, dtype, model, prior, tol) -> dict:
         raised, outcome = {}, {}
         # (b) and (c) are the ahead-of-time builds; a plain jitted call of the same bad radii
         # (no ahead-of-time build) is a diagnostic. Each outcome is recorded: the exception
-        # (class and the start of its message) or, when none was raised, the run's result
+        # (its class, and the end of its message unless it carries the check's) or, when none was raised, the run's result
         # codes and whether its means are finite (a swallowed raise leaves NaN means).
         for v, fn in (("b", lambda: call("b", bad)), ("c", lambda: call("c", bad)), ("plain_jit", lambda: plain_fn(bad, ys))):
             try:
