@@ -85,7 +85,10 @@ def set_platform(name: str) -> None:
     starts, with jdrkf's large CPU pool (`jdrkf.use_large_cpu_pool`: jaxlib 0.10's batched
     LAPACK can deadlock otherwise); `"gpu"` fails early with a clear message when no GPU
     backend is available."""
-    os.environ["JAX_PLATFORMS"] = "cuda" if name == "gpu" else "cpu"
+    # "cuda,cpu": the GPU computes, and the host platform stays available to the host
+    # callbacks of jdrkf's run-time checks (with "cuda" alone, the check's raise becomes
+    # "pure_callback failed to find a local CPU device"; measured on an H200, 2026-11-28).
+    os.environ["JAX_PLATFORMS"] = "cuda,cpu" if name == "gpu" else "cpu"
     import jdrkf
 
     jdrkf.use_large_cpu_pool()
