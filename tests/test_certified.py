@@ -57,6 +57,31 @@ def test_worst_case_stopped_early_is_not_converged(problem, sets):
     assert not bool(early.converged)
 
 
+# Found by a randomized stress run: ‖H‖ ≈ 0.03, so the noise ball's multiplier is ~1.4e4.
+_WEAK_H = {
+    "M": [[0.6881824458293557, -0.15733320892445596, 0.09672656218485763], [-0.15733320892445596, 0.25887380884538425, -0.12069883798028061],
+          [0.09672656218485763, -0.12069883798028061, 0.351734362687899]],
+    "H": [[0.009444301128736104, 0.025057654935306168, 0.02030837615403191], [0.003597731229763481, 0.00011603240737337756, 0.005477070178803299]],
+    "R": [[32.60702086898454, -3.9712696039220616], [-3.9712696039220616, 1.51823403322882]],
+    "radii": (1.7203085476169293, 1.2952883786158453),
+}
+
+
+@pytest.mark.parametrize("rtol", [None, 1e-8])
+def test_large_multiplier_is_solved_to_the_certificate(rtol):
+    """A multiplier of ~1e4 made the fallback Newton's stopping test (relative to ‖x‖) stop
+    with the noise ball's equation at 2e-10, above the certificate's rtol: a correct value
+    (gap 0) reported not converged. The fallback now runs to the certificate's tolerance."""
+    from sdp_oracles import decoupled_wasserstein_sdp
+
+    M, H, R = (np.asarray(_WEAK_H[k]) for k in "MHR")
+    rx, rv = _WEAK_H["radii"]
+    out = worst_case(Wasserstein(rx), Wasserstein(rv), M, H, R, rtol=rtol)
+    assert bool(out.converged)
+    ref = decoupled_wasserstein_sdp(M, H, R, rx, rv)["value"]  # certified to 1e-14 by a NumPy Frank–Wolfe gap
+    assert abs(float(out.value) / ref - 1) < 1e-9
+
+
 def test_drkf_stopped_early_reports_solver_not_converged(problem, rng):
     model = jdrkf.LinearModel(F=0.9 * jnp.eye(2), H=jnp.array([[1.0, 0.5]]), Q=0.1 * jnp.eye(2), R=jnp.eye(1))
     prior = jdrkf.Gaussian(jnp.zeros(2), jnp.eye(2))

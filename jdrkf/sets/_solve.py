@@ -306,11 +306,15 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
         def damped(x):
             # The chord steps failed to reach the tolerance: the start lies outside their
             # contraction region (seen on ill-conditioned H, R where Frank–Wolfe stalls at a
-            # gap ~1e-6). Damped Newton with a fresh Jacobian each step takes over.
-            result = newton(residual, x, _NEWTON_MAX_STEPS, ftol=rtol)
+            # gap ~1e-6). Damped Newton with a fresh Jacobian each step takes over, to the
+            # chord's absolute residual (newton's test is relative to ‖x‖, which a large
+            # multiplier inflates past what the certificate's equations allow) or round-off.
+            ftol = _CHORD_FTOL_FRACTION * rtol / (1.0 + jnp.linalg.norm(ravel_pytree(x)[0]))
+            result = newton(residual, x, _NEWTON_MAX_STEPS, ftol=ftol)
             return result.x, result.iterations
 
-        far = jnp.linalg.norm(ravel_pytree(r)[0]) > rtol * (1.0 + jnp.linalg.norm(ravel_pytree(x)[0]))  # newton's own test
+        far = (jnp.linalg.norm(ravel_pytree(r)[0]) > rtol * (1.0 + jnp.linalg.norm(ravel_pytree(x)[0]))) | (
+            jnp.max(jnp.abs(jnp.stack(r[1]))) > rtol)  # newton's own test, or a multiplier equation outside the certificate
         x, more = lax.cond(far, damped, lambda x: (x, jnp.zeros((), steps.dtype)), x)
         _, equations = residual(x)
         return x, (iters + steps + more, jnp.max(jnp.abs(jnp.stack(equations))))
