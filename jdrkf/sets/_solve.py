@@ -284,7 +284,8 @@ def _solve(make_objective: Callable, params, sets: tuple, nominals: tuple, rtol,
     Forward: Frank–Wolfe to a relative gap `max(rtol, _START_RTOL)`, then chord steps on
     that system to an absolute residual of `rtol / 100` or round-off (`chord`; the Jacobian in closed form for two
     Wasserstein balls, `make_jacobian`, else `jax.jacfwd`); if the chord steps stop short
-    of `rtol`, damped Newton (`newton`, a fresh Jacobian each step). Derivatives: the implicit function theorem on the same system
+    of `rtol` or leave a multiplier equation outside it, damped Newton (`newton`, a fresh
+    Jacobian each step) to the same absolute residual. Derivatives: the implicit function theorem on the same system
     (`lax.custom_root`); the blocks are smooth functions of its solution.
 
     `gap` is the duality gap `Σⱼ⟨Dⱼ(K), Σⱼ⟩ − f(Σ) ≥ max f − f(Σ)` at the solution: `Σ(K)`
